@@ -1,0 +1,86 @@
+"""The pendulum behind brax's `Env` interface, so brax's own trainers (PPO) run on it.
+
+Observation (sin phi, cos phi, omega); action in [-1, 1] scaled to the torque limit. The physical
+state [phi, omega] lives in `State.pipeline_state`, which is where brax's `AutoResetWrapper` stores
+and restores the first state of an episode. The reward-noise key is carried in `State.info["rng"]`.
+Episodes never terminate by themselves (`done` = 0): brax's `EpisodeWrapper` truncates them.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from brax.envs.base import Env, State
+
+from gpguided_jax import pendulum
+
+ENV_NAME = "gpguided_pendulum"
+
+
+def observe(state: jax.Array) -> jax.Array:
+    """(sin phi, cos phi, omega) of a pendulum state [phi, omega]."""
+    return jnp.stack([jnp.sin(state[0]), jnp.cos(state[0]), state[1]])
+
+
+class PendulumEnv(Env):
+    """brax `Env` adapter for `gpguided_jax.pendulum`.
+
+    Args:
+      params: `PendulumParams`; defaults to `pendulum.make_params()` in float32 (brax's networks
+        run in float32).
+      backend: reported by the `backend` property; the physics is this module's own RK4.
+    """
+
+    def __init__(self, params: pendulum.PendulumParams | None = None, backend: str = "jax"):
+        self._params = params if params is not None else pendulum.make_params(dtype=jnp.float32)
+        self._backend = backend
+
+    @property
+    def params(self) -> pendulum.PendulumParams:
+        return self._params
+
+    def reset(self, rng: jax.Array) -> State:
+        key_reset, key_next = jax.random.split(rng)
+        s = pendulum.reset(key_reset, self._params)
+        zero = jnp.zeros((), s.dtype)
+        return State(
+            pipeline_state=s,
+            obs=observe(s),
+            reward=zero,
+            done=zero,
+            metrics={"upright_error": jnp.abs(s[0] - jnp.pi)},
+            info={"rng": key_next},
+        )
+
+    def step(self, state: State, action: jax.Array) -> State:
+        key_noise, key_next = jax.random.split(state.info["rng"])
+        torque = jnp.reshape(action, ()) * self._params.max_torque
+        s, reward = pendulum.step(key_noise, state.pipeline_state, torque, self._params)
+        state.info.update(rng=key_next)
+        # Update in place: wrappers (e.g. the evaluator) add their own metric keys to this dict.
+        state.metrics.update(upright_error=jnp.abs(s[0] - jnp.pi))
+        return state.replace(
+            pipeline_state=s,
+            obs=observe(s),
+            reward=reward.astype(state.reward.dtype),
+            done=jnp.zeros_like(state.done),
+        )
+
+    @property
+    def observation_size(self) -> int:
+        return 3
+
+    @property
+    def action_size(self) -> int:
+        return 1
+
+    @property
+    def backend(self) -> str:
+        return self._backend
+
+
+def register() -> None:
+    """Registers `PendulumEnv` with brax under the name `gpguided_pendulum` (idempotent)."""
+    from brax import envs
+
+    envs.register_environment(ENV_NAME, PendulumEnv)

@@ -1,0 +1,197 @@
+"""Deterministic controllers c(s; theta_c) = u_max * tanh(theta_c^T psi(s)) (paper §II, SPEC §3).
+
+A controller is linear in its parameters before the squashing, so its parameter pytree and its
+feature map psi(s) have the same structure, and
+
+  dc/dtheta_c = u_max * (1 - tanh(z)^2) * psi(s),   z = <theta_c, psi(s)>.
+
+Two feature maps are provided:
+
+* `linear_controller`: psi(s) = (sin phi, cos phi, omega, 1), one weight vector of length 4.
+* `rbf_controller`: a radial-basis-function network whose centres lie on a fixed grid over
+  (phi, omega), embedded periodically as (sin phi, cos phi, omega), with fixed widths, plus a bias.
+
+Following optax, a constructor closes over the static configuration (torque limit, centres and
+widths, which are NumPy constants) and returns a `Controller` of pure functions of
+(params, state). The state is one (2,) vector [phi, omega]; batch with `jax.vmap`.
+"""
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+Params = Any  # a pytree of arrays with the structure of the controller's features
+
+
+class LinearParams(NamedTuple):
+    """Parameters of the linear controller.
+
+    Attributes:
+      weights: (4,) weights of the features (sin phi, cos phi, omega, 1).
+    """
+
+    weights: jax.Array
+
+
+class RBFParams(NamedTuple):
+    """Parameters of the RBF-network controller.
+
+    Attributes:
+      weights: (M,) weights of the M radial basis functions.
+      bias: () bias added before the squashing.
+    """
+
+    weights: jax.Array
+    bias: jax.Array
+
+
+class Controller(NamedTuple):
+    """A squashed, linear-in-parameters controller, as a bundle of pure functions.
+
+    Attributes:
+      init: `init(dtype=None) -> params`, the deterministic initialiser (all zeros, so c(s) = 0
+        everywhere and tanh is at its steepest).
+      features: `features(state) -> psi`, a pytree like params.
+      apply: `apply(params, state) -> c`, the torque c(s; theta_c) in (-u_max, u_max).
+      value_and_grad: `value_and_grad(params, state) -> (c, dc_dparams)`, with the hand-derived
+        gradient dc/dtheta_c as a pytree like params.
+      u_max: the torque limit (a Python float, static).
+    """
+
+    init: Callable[..., Params]
+    features: Callable[[jax.Array], Params]
+    apply: Callable[[Params, jax.Array], jax.Array]
+    value_and_grad: Callable[[Params, jax.Array], tuple[jax.Array, Params]]
+    u_max: float
+
+
+def _preactivation(params: Params, psi: Params) -> jax.Array:
+    """z = <theta_c, psi(s)>, summed over every leaf."""
+    products = jax.tree_util.tree_map(lambda w, f: jnp.sum(w * f), params, psi)
+    return sum(jax.tree_util.tree_leaves(products))
+
+
+def _make_controller(features_fn, zeros_fn, u_max: float) -> Controller:
+    """Builds the squashed controller c = u_max tanh(<theta_c, psi(s)>) for a feature map."""
+
+    def features(state):
+        chex.assert_shape(state, (2,))
+        return features_fn(state)
+
+    def apply(params, state):
+        z = _preactivation(params, features(state))
+        return u_max * jnp.tanh(z)
+
+    def value_and_grad(params, state):
+        psi = features(state)
+        squashed = jnp.tanh(_preactivation(params, psi))
+        # d/dz u_max tanh(z) = u_max (1 - tanh(z)^2); exactly the expression jax's tanh rule uses,
+        # so the saturated regime (|z| large, c at the torque limit) agrees bit for bit.
+        slope = u_max * (1.0 - squashed * squashed)
+        grad = jax.tree_util.tree_map(lambda f: slope * f, psi)
+        return u_max * squashed, grad
+
+    def init(dtype=None):
+        return zeros_fn(dtype or jnp.result_type(float))
+
+    return Controller(
+        init=init, features=features, apply=apply, value_and_grad=value_and_grad, u_max=u_max
+    )
+
+
+def linear_controller(u_max: float = 5.0) -> Controller:
+    """c(s) = u_max tanh(w^T (sin phi, cos phi, omega, 1)) (SPEC §3).
+
+    Args:
+      u_max: torque limit (the pendulum clips to [-5, 5] N m).
+    """
+
+    def features_fn(state):
+        phi, omega = state[0], state[1]
+        return LinearParams(
+            weights=jnp.stack([jnp.sin(phi), jnp.cos(phi), omega, jnp.ones_like(phi)])
+        )
+
+    def zeros_fn(dtype):
+        return LinearParams(weights=jnp.zeros((4,), dtype))
+
+    return _make_controller(features_fn, zeros_fn, float(u_max))
+
+
+def rbf_grid(num_angles: int = 8, num_velocities: int = 5, max_velocity: float = 6.0):
+    """Centres of the RBF network on a regular grid over (phi, omega).
+
+    Angles are spread uniformly over [0, 2 pi) (the first one at phi = 0, hanging down, so the
+    grid contains the upright pi whenever num_angles is even); velocities uniformly over
+    [-max_velocity, max_velocity].
+
+    Returns:
+      (num_angles * num_velocities, 2) NumPy array of [phi, omega] centres.
+    """
+    angles = 2.0 * np.pi * np.arange(num_angles) / num_angles
+    velocities = np.linspace(-max_velocity, max_velocity, num_velocities)
+    grid = np.stack(np.meshgrid(angles, velocities, indexing="ij"), axis=-1)
+    return grid.reshape(-1, 2)
+
+
+def rbf_controller(
+    u_max: float = 5.0,
+    *,
+    num_angles: int = 8,
+    num_velocities: int = 5,
+    max_velocity: float = 6.0,
+    angle_width: float | None = None,
+    velocity_width: float | None = None,
+) -> Controller:
+    """RBF network c(s) = u_max tanh(sum_i w_i exp(-d_i(s)^2 / 2) + b) (SPEC §3).
+
+    The state is embedded periodically as y(s) = (sin phi, cos phi, omega), the centres mu_i are
+    the embeddings of an `rbf_grid`, and
+
+      d_i(s)^2 = |(sin phi, cos phi) - (sin phi_i, cos phi_i)|^2 / w_phi^2
+                 + (omega - omega_i)^2 / w_omega^2.
+
+    Args:
+      u_max: torque limit.
+      num_angles, num_velocities, max_velocity: the grid of centres (static; fixes M).
+      angle_width: w_phi, a chord length on the unit circle; default the chord between
+        neighbouring grid angles, 2 sin(pi / num_angles).
+      velocity_width: w_omega; default the grid spacing in omega.
+    """
+    centres = rbf_grid(num_angles, num_velocities, max_velocity)
+    if angle_width is None:
+        angle_width = 2.0 * np.sin(np.pi / num_angles)
+    if velocity_width is None:
+        velocity_width = 2.0 * max_velocity / max(num_velocities - 1, 1)
+    embedded_centres = np.stack(
+        [np.sin(centres[:, 0]), np.cos(centres[:, 0]), centres[:, 1]], axis=-1
+    )
+    inverse_widths = np.array([1.0 / angle_width, 1.0 / angle_width, 1.0 / velocity_width])
+    num_centres = centres.shape[0]
+
+    def features_fn(state):
+        phi, omega = state[0], state[1]
+        embedded = jnp.stack([jnp.sin(phi), jnp.cos(phi), omega])
+        z = (embedded[None, :] - jnp.asarray(embedded_centres, state.dtype)) * jnp.asarray(
+            inverse_widths, state.dtype
+        )
+        return RBFParams(weights=jnp.exp(-0.5 * jnp.sum(z * z, axis=-1)), bias=jnp.ones_like(phi))
+
+    def zeros_fn(dtype):
+        return RBFParams(weights=jnp.zeros((num_centres,), dtype), bias=jnp.zeros((), dtype))
+
+    return _make_controller(features_fn, zeros_fn, float(u_max))
+
+
+CONTROLLERS = {"linear": linear_controller, "rbf": rbf_controller}
+
+
+def make_controller(name: str, **kwargs) -> Controller:
+    """Looks a controller constructor up by name ('linear' or 'rbf')."""
+    if name not in CONTROLLERS:
+        raise ValueError(f"unknown controller {name!r}; choose from {sorted(CONTROLLERS)}")
+    return CONTROLLERS[name](**kwargs)

@@ -1,0 +1,510 @@
+"""Stochastic policies around a controller: fixed noise (eq. 1), GP-guided exploratory noise
+(eq. 16-19) and the Gibbs policy over GP-scored candidate actions (eq. 20-22). SPEC §3.
+
+All three share one calling convention, so that a training loop can pick one by a static name
+(`make_policy`) and run it inside `lax.scan`:
+
+  action, aux = policy.sample(key, theta, state, ctx)
+  log_pi      = policy.log_prob(theta, state, action, ctx, aux)
+  score       = policy.grad_log_prob(theta, state, action, ctx, aux)   # pytree like theta
+  std         = policy.exploration_std(theta, state, ctx, aux)
+
+* `theta` is a `PolicyParams` (controller parameters, log sigma). Every policy takes the same
+  `theta`; only the fixed-noise policy uses `log_std` (its score is 0 for the other two).
+* `ctx` is a `PolicyContext`: the GP state, the kernel hyperparameters and the traced policy
+  hyperparameters (lambda_v, beta, sigma_e, candidate scale, floors).
+* `aux` is a `PolicyAux`, the by-products of sampling that the score needs (the Gibbs candidates,
+  their normalised Q values and the selected index; the sampling variance).
+* The number K of Gibbs candidates is static (closed over by `gibbs_policy`).
+
+Everything is written for one state (2,) and one scalar action; batch with `jax.vmap`. Sampled
+actions are NOT clipped (the environment clips the torque); log-probabilities and scores are those
+of the unclipped sample.
+
+GP convention (gpguided_jax.sparse_gp): latent variance sigma^2(x) = k** + k^T C k with C negative
+semi-definite, clipped to [0, k**]. The paper writes k** - k^T C k with C of the opposite sign.
+"""
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import chex
+import jax
+import jax.numpy as jnp
+
+from gpguided_jax import controllers as controllers_lib
+from gpguided_jax import kernels, sparse_gp
+
+_LOG_2PI = 1.8378770664093453  # log(2 pi)
+
+
+class PolicyParams(NamedTuple):
+    """Policy parameters theta = (theta_c, log sigma) (SPEC §3).
+
+    Attributes:
+      controller: pytree of controller parameters theta_c (see gpguided_jax.controllers).
+      log_std: () log sigma of the fixed exploratory noise (eq. 1); unused by the GP-guided
+        policies, whose score with respect to it is 0.
+    """
+
+    controller: Any
+    log_std: jax.Array
+
+
+class PolicyContext(NamedTuple):
+    """Everything a policy reads besides theta: the GP critic and traced hyperparameters.
+
+    All fields are arrays (traced), so a sweep over them is one compiled program.
+
+    Attributes:
+      gp: `sparse_gp.SparseGPState`, the current Q_GP model.
+      kernel: `kernels.KernelParams` of the GP.
+      variance_scale: () lambda_v in sigma^2_GP = lambda_v sigma^2(x*) (eq. 16).
+      variance_floor: () lower bound on the guided-noise variance sigma^2_GP.
+      inverse_temperature: () beta of the Gibbs policy (eq. 20).
+      energy_width: () sigma_e, width of the Gaussian neighbourhood term in the energy.
+      candidate_scale: () factor on the GP variance giving the candidate variance.
+      candidate_floor: () lower bound on the candidate variance sigma^2_cand.
+    """
+
+    gp: sparse_gp.SparseGPState
+    kernel: kernels.KernelParams
+    variance_scale: jax.Array
+    variance_floor: jax.Array
+    inverse_temperature: jax.Array
+    energy_width: jax.Array
+    candidate_scale: jax.Array
+    candidate_floor: jax.Array
+
+
+class PolicyAux(NamedTuple):
+    """By-products of `sample` that `log_prob`/`grad_log_prob` need. K = number of candidates
+    (0 for the Gaussian policies).
+
+    Attributes:
+      mean_action: () c(s; theta) when the action was sampled.
+      variance: () the variance the action (Gaussian policies) or the candidates (Gibbs) were
+        drawn with: sigma^2 (eq. 1), sigma^2_GP (eq. 16) or sigma^2_cand.
+      candidates: (K,) Gibbs candidate actions a_j (held constant in the score).
+      normalised_q: (K,) min-max normalised Q_GP(s, a_j) in [0, 1] (held constant in the score).
+      probs: (K,) the Gibbs selection probabilities pi_j = softmax(beta E)_j at sampling time.
+      index: () int32 index J of the selected candidate (0 for the Gaussian policies).
+    """
+
+    mean_action: jax.Array
+    variance: jax.Array
+    candidates: jax.Array
+    normalised_q: jax.Array
+    probs: jax.Array
+    index: jax.Array
+
+
+class Policy(NamedTuple):
+    """A stochastic policy as a bundle of pure functions sharing one calling convention.
+
+    Attributes:
+      sample: (key, theta, state, ctx) -> (action, aux).
+      log_prob: (theta, state, action, ctx, aux) -> () log pi(action | state).
+      grad_log_prob: (theta, state, action, ctx, aux) -> PolicyParams, hand-derived score.
+      exploration_std: (theta, state, ctx, aux) -> () a standard deviation of the exploration.
+      name: the policy's name (static).
+    """
+
+    sample: Callable[..., tuple[jax.Array, PolicyAux]]
+    log_prob: Callable[..., jax.Array]
+    grad_log_prob: Callable[..., PolicyParams]
+    exploration_std: Callable[..., jax.Array]
+    name: str
+
+
+def init_params(controller: controllers_lib.Controller, log_std: float = 0.0, dtype=None):
+    """Deterministic initial theta: zero controller weights (c = 0) and the given log sigma."""
+    dtype = dtype or jnp.result_type(float)
+    return PolicyParams(controller=controller.init(dtype), log_std=jnp.asarray(log_std, dtype))
+
+
+def make_context(
+    gp: sparse_gp.SparseGPState,
+    kernel: kernels.KernelParams,
+    *,
+    variance_scale=1.0,
+    variance_floor=1e-6,
+    inverse_temperature=10.0,
+    energy_width=1.0,
+    candidate_scale=1.0,
+    candidate_floor=1e-2,
+) -> PolicyContext:
+    """Builds a `PolicyContext`, casting the hyperparameters to the GP's dtype.
+
+    Defaults: lambda_v = 1, variance floor 1e-6 (N m)^2, beta = 10 (the paper's Fig. 3),
+    sigma_e = 1 N m, candidate variance = max(1 * sigma^2(x*), 1e-2).
+    """
+    dtype = gp.alpha.dtype
+
+    def cast(value):
+        return jnp.asarray(value, dtype)
+
+    return PolicyContext(
+        gp=gp,
+        kernel=kernel,
+        variance_scale=cast(variance_scale),
+        variance_floor=cast(variance_floor),
+        inverse_temperature=cast(inverse_temperature),
+        energy_width=cast(energy_width),
+        candidate_scale=cast(candidate_scale),
+        candidate_floor=cast(candidate_floor),
+    )
+
+
+def _empty_gibbs_fields(dtype):
+    empty = jnp.zeros((0,), dtype)
+    return dict(candidates=empty, normalised_q=empty, probs=empty, index=jnp.zeros((), jnp.int32))
+
+
+def _scale_tree(tree, scalar):
+    return jax.tree_util.tree_map(lambda leaf: scalar * leaf, tree)
+
+
+# --------------------------------------------------------------------------------------------
+# GP quantities at x* = (s, a*) and their derivative along the action coordinate (eq. 18-19).
+# --------------------------------------------------------------------------------------------
+
+
+def gp_latent_variance(gp, kernel, state, action):
+    """sigma^2(x*) = clip(k** + k^T C k, 0, k**) at x* = features(s, a*) (eq. 6, SPEC §2).
+
+    The clip is written with `jnp.where` (not `jnp.clip`) so that autodiff takes the gradient of
+    exactly one branch, matching `gp_latent_variance_and_grad`.
+    """
+    x = kernels.state_action_features(state, action)
+    k = sparse_gp.masked_kernel_vector(gp, x, kernel)
+    kxx = kernels.kernel_diag(x, kernel)
+    raw = kxx + k @ (gp.C @ k)
+    return jnp.where(raw < 0.0, jnp.zeros_like(raw), jnp.where(raw > kxx, kxx, raw))
+
+
+def gp_latent_variance_and_grad(gp, kernel, state, action):
+    """sigma^2(x*) and d sigma^2 / d a* at x* = features(s, a*) (eq. 19, C held constant).
+
+    With sigma^2 = k** + k^T C k (C constant):
+      d sigma^2/d a* = d k**/d a* + k^T (C + C^T) dk/d a*  (= 2 k^T C dk/d a* for symmetric C),
+    d k**/d a* = 0 for the stationary SE kernel, and for the SE-ARD kernel
+      dk_i/d a* = -k_i (a* - b_{i,a}) / l_a^2,
+    with b_{i,a} the action coordinate of basis vector i and l_a its length-scale (the action is
+    the last coordinate of `kernels.state_action_features`). Where the clip to [0, k**] is active
+    the derivative is 0.
+
+    Returns:
+      (variance, d_variance_d_action), scalars.
+    """
+    chex.assert_shape(state, (2,))
+    x = kernels.state_action_features(state, action)
+    k = sparse_gp.masked_kernel_vector(gp, x, kernel)
+    kxx = kernels.kernel_diag(x, kernel)
+    raw = kxx + k @ (gp.C @ k)
+    action_lengthscale = kernel.lengthscales[-1]
+    dk = -k * (x[-1] - gp.basis_vectors[:, -1]) / (action_lengthscale * action_lengthscale)
+    # (C + C^T) rather than 2C: identical for the symmetric C the GP keeps, and exact otherwise.
+    draw = dk @ ((gp.C + gp.C.T) @ k)
+    in_range = (raw >= 0.0) & (raw <= kxx)
+    variance = jnp.where(raw < 0.0, jnp.zeros_like(raw), jnp.where(raw > kxx, kxx, raw))
+    return variance, jnp.where(in_range, draw, jnp.zeros_like(draw))
+
+
+def gp_mean(gp, kernel, state, action):
+    """Q_GP(s, a) = k(x)^T alpha, the GP predictive mean (eq. 5)."""
+    x = kernels.state_action_features(state, action)
+    return sparse_gp.masked_kernel_vector(gp, x, kernel) @ gp.alpha
+
+
+def _floored(value, floor):
+    # `where`, not `maximum`: at a tie jnp.maximum splits the gradient in halves, and we want the
+    # hand gradient (0 on the floor) and autodiff to agree everywhere.
+    return jnp.where(value > floor, value, floor)
+
+
+def guided_variance(controller, controller_params, state, ctx):
+    """sigma^2_GP(s) = max(lambda_v sigma^2(x*), floor), x* = (s, c(s; theta_c)) (eq. 16)."""
+    mean_action = controller.apply(controller_params, state)
+    latent = gp_latent_variance(ctx.gp, ctx.kernel, state, mean_action)
+    return _floored(ctx.variance_scale * latent, ctx.variance_floor)
+
+
+def guided_variance_and_grad(controller, controller_params, state, ctx):
+    """sigma^2_GP, its gradient with respect to theta_c (eq. 18-19), and c, dc/dtheta_c.
+
+    grad sigma^2_GP = lambda_v d sigma^2/d a* |_{a* = c(s)} * dc/dtheta_c, with C constant.
+    The floor: where lambda_v sigma^2(x*) <= floor the variance is the constant floor and this
+    gradient is exactly 0 (the policy then behaves like the fixed-noise policy with sigma^2 =
+    floor); the same holds where the GP variance is clipped at 0 or at k**.
+
+    Returns:
+      (variance, grad_variance, mean_action, grad_mean_action); the gradients are pytrees like
+      controller_params.
+    """
+    mean_action, grad_mean = controller.value_and_grad(controller_params, state)
+    latent, dlatent_da = gp_latent_variance_and_grad(ctx.gp, ctx.kernel, state, mean_action)
+    scaled = ctx.variance_scale * latent
+    variance = _floored(scaled, ctx.variance_floor)
+    dvariance_da = jnp.where(
+        scaled > ctx.variance_floor, ctx.variance_scale * dlatent_da, jnp.zeros_like(scaled)
+    )
+    return variance, _scale_tree(grad_mean, dvariance_da), mean_action, grad_mean
+
+
+def _gaussian_log_prob(action, mean, variance):
+    diff = action - mean
+    return -0.5 * (_LOG_2PI + jnp.log(variance) + diff * diff / variance)
+
+
+# --------------------------------------------------------------------------------------------
+# (1) Fixed Gaussian noise, eq. 1.
+# --------------------------------------------------------------------------------------------
+
+
+def fixed_noise_policy(controller: controllers_lib.Controller) -> Policy:
+    """a ~ N(c(s; theta_c), sigma^2), sigma = exp(log_std) (eq. 1).
+
+    Score: d log pi/d theta_c = (a - c)/sigma^2 dc/dtheta_c,
+           d log pi/d log sigma = (a - c)^2/sigma^2 - 1.
+    """
+
+    def sample(key, theta, state, ctx):
+        chex.assert_shape(state, (2,))
+        mean_action = controller.apply(theta.controller, state)
+        std = jnp.exp(theta.log_std)
+        action = mean_action + std * jax.random.normal(key, (), mean_action.dtype)
+        aux = PolicyAux(
+            mean_action=mean_action, variance=std * std, **_empty_gibbs_fields(state.dtype)
+        )
+        return action, aux
+
+    def log_prob(theta, state, action, ctx, aux):
+        del ctx, aux
+        mean_action = controller.apply(theta.controller, state)
+        return _gaussian_log_prob(action, mean_action, jnp.exp(2.0 * theta.log_std))
+
+    def grad_log_prob(theta, state, action, ctx, aux):
+        del ctx, aux
+        chex.assert_shape(state, (2,))
+        mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
+        variance = jnp.exp(2.0 * theta.log_std)
+        diff = action - mean_action
+        return PolicyParams(
+            controller=_scale_tree(grad_mean, diff / variance),
+            log_std=diff * diff / variance - 1.0,
+        )
+
+    def exploration_std(theta, state, ctx, aux):
+        del state, ctx, aux
+        return jnp.exp(theta.log_std)
+
+    return Policy(sample, log_prob, grad_log_prob, exploration_std, "fixed_noise")
+
+
+# --------------------------------------------------------------------------------------------
+# (2) GP-guided exploratory noise, eq. 16-19.
+# --------------------------------------------------------------------------------------------
+
+
+def guided_variance_policy(controller: controllers_lib.Controller) -> Policy:
+    """a ~ N(c(s), sigma^2_GP(s)), sigma^2_GP = max(lambda_v sigma^2(s, c(s)), floor) (eq. 16).
+
+    Score (eq. 17, with the factor 1/2 that the printed equation lacks, SPEC §3):
+      d log pi/d theta_c = (a - c)/sigma^2_GP dc/dtheta_c
+                           + ((a - c)^2 - sigma^2_GP)/(2 sigma^4_GP) grad sigma^2_GP,
+      grad sigma^2_GP = lambda_v (2 k^T C dk/da*) dc/dtheta_c  (eq. 18-19, C constant; 0 on the
+      floor and where the GP variance is clipped),
+      d log pi/d log sigma = 0 (sigma is not used).
+    log_prob and the score evaluate sigma^2_GP with the GP in `ctx`: pass the GP that the action
+    was sampled with to get the score of the behaviour distribution.
+    """
+
+    def sample(key, theta, state, ctx):
+        chex.assert_shape(state, (2,))
+        mean_action = controller.apply(theta.controller, state)
+        latent = gp_latent_variance(ctx.gp, ctx.kernel, state, mean_action)
+        variance = _floored(ctx.variance_scale * latent, ctx.variance_floor)
+        action = mean_action + jnp.sqrt(variance) * jax.random.normal(
+            key, (), mean_action.dtype
+        )
+        aux = PolicyAux(
+            mean_action=mean_action, variance=variance, **_empty_gibbs_fields(state.dtype)
+        )
+        return action, aux
+
+    def log_prob(theta, state, action, ctx, aux):
+        del aux
+        mean_action = controller.apply(theta.controller, state)
+        variance = guided_variance(controller, theta.controller, state, ctx)
+        return _gaussian_log_prob(action, mean_action, variance)
+
+    def grad_log_prob(theta, state, action, ctx, aux):
+        del aux
+        variance, grad_variance, mean_action, grad_mean = guided_variance_and_grad(
+            controller, theta.controller, state, ctx
+        )
+        diff = action - mean_action
+        mean_weight = diff / variance
+        variance_weight = (diff * diff - variance) / (2.0 * variance * variance)
+        grad_controller = jax.tree_util.tree_map(
+            lambda gm, gv: mean_weight * gm + variance_weight * gv, grad_mean, grad_variance
+        )
+        return PolicyParams(controller=grad_controller, log_std=jnp.zeros_like(theta.log_std))
+
+    def exploration_std(theta, state, ctx, aux):
+        del aux
+        return jnp.sqrt(guided_variance(controller, theta.controller, state, ctx))
+
+    return Policy(sample, log_prob, grad_log_prob, exploration_std, "guided_variance")
+
+
+# --------------------------------------------------------------------------------------------
+# (3) Gibbs policy over GP-scored candidates, eq. 20-22.
+# --------------------------------------------------------------------------------------------
+
+
+def normalise_q(q_values: jax.Array) -> jax.Array:
+    """Min-max normalisation of the candidates' Q_GP to [0, 1] (SPEC §3).
+
+    Rewards are negative, and with raw Q the energy Q exp(-d^2/2 sigma_e^2) would prefer actions
+    far from c(s); the paper's Fig. 3 shows Q in [0, 1]. Guard: when all Q are equal (range at
+    most a few ulps of max |Q|, e.g. an empty GP) the Q values carry no preference and Q~ = 1 for
+    every candidate, so that E reduces to the Gaussian neighbourhood term around c(s).
+    """
+    chex.assert_rank(q_values, 1)
+    q_min, q_max = jnp.min(q_values), jnp.max(q_values)
+    q_range = q_max - q_min
+    eps = jnp.finfo(q_values.dtype).eps
+    flat = q_range <= 64.0 * eps * jnp.maximum(1.0, jnp.max(jnp.abs(q_values)))
+    safe_range = jnp.where(flat, jnp.ones_like(q_range), q_range)
+    return jnp.where(flat, jnp.ones_like(q_values), (q_values - q_min) / safe_range)
+
+
+def gibbs_energy(candidates, normalised_q, mean_action, energy_width):
+    """E_j = Q~_j exp(-(a_j - c(s))^2 / (2 sigma_e^2)) (eq. 20)."""
+    diff = candidates - mean_action
+    return normalised_q * jnp.exp(-0.5 * diff * diff / (energy_width * energy_width))
+
+
+def candidate_variance(controller, controller_params, state, ctx):
+    """sigma^2_cand = max(candidate_scale * sigma^2(s, c(s)), candidate_floor): the model's
+    confidence at (s, c(s)) (paper, text after eq. 22), floored and scaled."""
+    mean_action = controller.apply(controller_params, state)
+    latent = gp_latent_variance(ctx.gp, ctx.kernel, state, mean_action)
+    return _floored(ctx.candidate_scale * latent, ctx.candidate_floor)
+
+
+def gibbs_distribution(candidates, normalised_q, mean_action, ctx):
+    """(E, pi) over the candidates: pi = softmax(beta E) (the discrete form of eq. 20)."""
+    energy = gibbs_energy(candidates, normalised_q, mean_action, ctx.energy_width)
+    return energy, jax.nn.softmax(ctx.inverse_temperature * energy)
+
+
+def gibbs_select(key, energy, inverse_temperature):
+    """J ~ Categorical(softmax(beta E)); the selection step of `gibbs_policy.sample`."""
+    return jax.random.categorical(key, inverse_temperature * energy).astype(jnp.int32)
+
+
+def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 32) -> Policy:
+    """Gibbs policy over K GP-scored candidate actions (eq. 20-22, SPEC §3).
+
+    Sampling: a_j ~ N(c(s), sigma^2_cand), j = 1..K; Q~_j = min-max normalised Q_GP(s, a_j);
+    E_j = Q~_j exp(-(a_j - c)^2/(2 sigma_e^2)); pi = softmax(beta E); J ~ pi; action a_J.
+
+    Score (eq. 21-22), with the candidates and Q~ held constant:
+      d log pi_J/d theta_c = beta (dE_J - sum_j pi_j dE_j),
+      dE_j = E_j (a_j - c)/sigma_e^2 dc/dtheta_c,
+      d log pi_J/d log sigma = 0.
+    `log_prob` is log pi_J = beta E_J - logsumexp(beta E) of the discrete distribution over the
+    candidates in `aux`, with index J = aux.index; its `action` argument is not read (it is
+    aux.candidates[aux.index] for an action drawn by `sample`). The density with which the
+    candidates themselves were proposed is not part of this log-probability (as in the paper).
+
+    Args:
+      controller: the deterministic controller c(s; theta_c).
+      num_candidates: K (static).
+    """
+    if num_candidates < 1:
+        raise ValueError("num_candidates must be positive")
+
+    def sample(key, theta, state, ctx):
+        chex.assert_shape(state, (2,))
+        key_candidates, key_select = jax.random.split(key)
+        mean_action = controller.apply(theta.controller, state)
+        variance = candidate_variance(controller, theta.controller, state, ctx)
+        candidates = mean_action + jnp.sqrt(variance) * jax.random.normal(
+            key_candidates, (num_candidates,), mean_action.dtype
+        )
+        q_values = jax.vmap(gp_mean, in_axes=(None, None, None, 0))(
+            ctx.gp, ctx.kernel, state, candidates
+        )
+        normalised_q = normalise_q(q_values)
+        energy, probs = gibbs_distribution(candidates, normalised_q, mean_action, ctx)
+        index = gibbs_select(key_select, energy, ctx.inverse_temperature)
+        aux = PolicyAux(
+            mean_action=mean_action,
+            variance=variance,
+            candidates=candidates,
+            normalised_q=normalised_q,
+            probs=probs,
+            index=index,
+        )
+        return candidates[index], aux
+
+    def log_prob(theta, state, action, ctx, aux):
+        del action
+        mean_action = controller.apply(theta.controller, state)
+        # Held constant with respect to theta (eq. 21-22); they are inputs here anyway.
+        candidates = jax.lax.stop_gradient(aux.candidates)
+        normalised_q = jax.lax.stop_gradient(aux.normalised_q)
+        logits = ctx.inverse_temperature * gibbs_energy(
+            candidates, normalised_q, mean_action, ctx.energy_width
+        )
+        return logits[aux.index] - jax.nn.logsumexp(logits)
+
+    def grad_log_prob(theta, state, action, ctx, aux):
+        del action
+        chex.assert_shape(state, (2,))
+        mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
+        energy, probs = gibbs_distribution(aux.candidates, aux.normalised_q, mean_action, ctx)
+        # dE_j / dc = E_j (a_j - c) / sigma_e^2 (eq. 22)
+        denergy_dc = energy * (aux.candidates - mean_action) / (ctx.energy_width**2)
+        dlogpi_dc = ctx.inverse_temperature * (denergy_dc[aux.index] - probs @ denergy_dc)
+        return PolicyParams(
+            controller=_scale_tree(grad_mean, dlogpi_dc), log_std=jnp.zeros_like(theta.log_std)
+        )
+
+    def exploration_std(theta, state, ctx, aux):
+        """Standard deviation of the discrete distribution pi over the candidates (about its own
+        mean sum_j pi_j a_j, not about c(s))."""
+        mean_action = controller.apply(theta.controller, state)
+        _, probs = gibbs_distribution(aux.candidates, aux.normalised_q, mean_action, ctx)
+        centre = probs @ aux.candidates
+        spread = aux.candidates - centre
+        return jnp.sqrt(jnp.maximum(probs @ (spread * spread), 0.0))
+
+    return Policy(sample, log_prob, grad_log_prob, exploration_std, "gibbs")
+
+
+POLICY_NAMES = ("fixed_noise", "guided_variance", "gibbs")
+
+
+def make_policy(
+    name: str, controller: controllers_lib.Controller, *, num_candidates: int = 32
+) -> Policy:
+    """Looks a policy up by its static name.
+
+    Args:
+      name: 'fixed_noise' (eq. 1; the REINFORCE and gp_pg methods), 'guided_variance'
+        (eq. 16-19) or 'gibbs' (eq. 20-22; alias 'guided_direction').
+      controller: the deterministic controller.
+      num_candidates: K for the Gibbs policy (static; ignored otherwise).
+    """
+    if name == "fixed_noise":
+        return fixed_noise_policy(controller)
+    if name == "guided_variance":
+        return guided_variance_policy(controller)
+    if name in ("gibbs", "guided_direction"):
+        return gibbs_policy(controller, num_candidates)
+    raise ValueError(f"unknown policy {name!r}; choose from {POLICY_NAMES}")
