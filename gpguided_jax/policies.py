@@ -458,10 +458,11 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
         # Held constant with respect to theta (eq. 21-22); they are inputs here anyway.
         candidates = jax.lax.stop_gradient(aux.candidates)
         normalised_q = jax.lax.stop_gradient(aux.normalised_q)
-        logits = ctx.inverse_temperature * gibbs_energy(
-            candidates, normalised_q, mean_action, ctx.energy_width
-        )
-        return logits[aux.index] - jax.nn.logsumexp(logits)
+        energy = gibbs_energy(candidates, normalised_q, mean_action, ctx.energy_width)
+        # log pi_J = beta E_J - logsumexp(beta E) = -logsumexp(beta (E - E_J)): relative to the
+        # selected candidate, so that when pi_J -> 1 neither the value nor its (forward-mode)
+        # derivative is a difference of two nearly equal numbers.
+        return -jax.nn.logsumexp(ctx.inverse_temperature * (energy - energy[aux.index]))
 
     def grad_log_prob(theta, state, action, ctx, aux):
         del action
@@ -470,7 +471,9 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
         energy, probs = gibbs_distribution(aux.candidates, aux.normalised_q, mean_action, ctx)
         # dE_j / dc = E_j (a_j - c) / sigma_e^2 (eq. 22)
         denergy_dc = energy * (aux.candidates - mean_action) / (ctx.energy_width**2)
-        dlogpi_dc = ctx.inverse_temperature * (denergy_dc[aux.index] - probs @ denergy_dc)
+        # beta (dE_J - sum_j pi_j dE_j) written as beta sum_j pi_j (dE_J - dE_j) (sum_j pi_j = 1):
+        # the j = J term vanishes exactly, so no cancellation when pi_J -> 1.
+        dlogpi_dc = ctx.inverse_temperature * (probs @ (denergy_dc[aux.index] - denergy_dc))
         return PolicyParams(
             controller=_scale_tree(grad_mean, dlogpi_dc), log_std=jnp.zeros_like(theta.log_std)
         )

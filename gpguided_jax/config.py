@@ -1,0 +1,247 @@
+"""Training configuration: one frozen dataclass, static fields apart from traced ones (SPEC §5).
+
+`TrainConfig` is a pytree: its *traced* fields (learning rate, lambda, beta, sigma_e, physics, ...)
+are leaves, its *static* fields (sizes, lengths, method, controller, ...) are metadata. So
+`jax.vmap(train, in_axes=(0, 0))(keys, stacked_configs)` sweeps any traced field in one compiled
+program, while changing a static field means a new program.
+
+Build configs with `preset(name, **overrides)` or `make_config(**fields)`: both validate and raise a
+`ValueError` naming the field for anything that makes no sense. (Validation is not in
+`__post_init__`, because JAX rebuilds the dataclass from tracers when it flattens and unflattens it.)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gpguided_jax import pendulum
+
+METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction")
+CONTROLLERS = ("linear", "rbf")
+AGE_FUNCTIONS = ("exp", "logit")
+OPTIMIZERS = ("sgd", "adam")
+
+STATIC_FIELDS = (
+    "method",
+    "num_updates",
+    "episodes_per_update",
+    "episode_length",
+    "gp_capacity",
+    "hyperfit_samples",
+    "hyperfit_steps",
+    "num_candidates",
+    "controller",
+    "age_fn",
+    "optimizer",
+    "use_baseline",
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Everything that defines a training run of Algorithm 1.
+
+    Static fields (fix shapes or the program; changing one recompiles):
+      method: 'reinforce' (eq. 4), 'gp_pg' (eq. 9, fixed noise), 'guided_variance' (eq. 16-19 + 9),
+        'guided_direction' (eq. 20-22 + 9).
+      num_updates: gradient updates (policy improvements).
+      episodes_per_update: episodes per gradient estimate.
+      episode_length: steps per episode (at 200 Hz).
+      gp_capacity: M, the basis-vector budget of the sparse GP.
+      hyperfit_samples: (state-action, return) pairs from the initial policy for the hyperparameter
+        fit; rounded up to whole episodes.
+      hyperfit_steps: Adam steps of the marginal-likelihood fit.
+      num_candidates: K, candidate actions of the Gibbs policy.
+      controller: 'linear' or 'rbf'.
+      age_fn: 'exp' (eq. 14) or 'logit' (eq. 15).
+      optimizer: 'sgd' (the paper) or 'adam'.
+      use_baseline: subtract V(s) = Q_GP(s, c(s)) (GP methods) or the batch-mean return-to-go at
+        each step (REINFORCE); off in the paper.
+
+    Traced fields (leaves; sweepable by vmap):
+      learning_rate: eta of the ascent step.
+      discount: gamma of the returns-to-go.
+      init_log_std: log sigma of the initial (and, for REINFORCE/gp_pg, learnable) noise.
+      age_penalty: lambda of eq. 13.
+      age_scale: c of eq. 14/15.
+      novelty_tol: relative novelty threshold for a new basis vector (eq. 10).
+      guided_variance_scale: exploration variance (N m)^2 where the GP knows nothing: lambda_v of
+        eq. 16 is this divided by the fitted signal variance, so that it is in torque units.
+      guided_variance_floor: lower bound on sigma^2_GP (N m)^2.
+      inverse_temperature: beta of eq. 20.
+      energy_width: sigma_e of the Gibbs energy (N m).
+      candidate_scale: candidate variance = candidate_scale * sigma^2(x*) / sigma_f^2 (N m)^2.
+      candidate_floor: lower bound on the candidate variance (N m)^2.
+      pendulum: `PendulumParams` (physics, reward noise, start-state distribution).
+    """
+
+    # static
+    method: str = "reinforce"
+    num_updates: int = 400
+    episodes_per_update: int = 3
+    episode_length: int = 50
+    gp_capacity: int = 100
+    hyperfit_samples: int = 2000
+    hyperfit_steps: int = 150
+    num_candidates: int = 16
+    controller: str = "linear"
+    age_fn: str = "exp"
+    optimizer: str = "sgd"
+    use_baseline: bool = False
+    # traced
+    learning_rate: Any = 2e-4
+    discount: Any = 0.99
+    init_log_std: Any = math.log(1.5)
+    age_penalty: Any = 100.0
+    age_scale: Any = 1.0
+    novelty_tol: Any = 1e-4
+    guided_variance_scale: Any = 2.25
+    guided_variance_floor: Any = 0.01
+    inverse_temperature: Any = 10.0
+    energy_width: Any = 1.0
+    candidate_scale: Any = 2.25
+    candidate_floor: Any = 0.01
+    pendulum: Any = None
+
+    def replace(self, **changes) -> TrainConfig:
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def uses_gp(self) -> bool:
+        return self.method != "reinforce"
+
+    @property
+    def hyperfit_episodes(self) -> int:
+        return -(-self.hyperfit_samples // self.episode_length)
+
+    def static_dict(self) -> dict:
+        return {f: getattr(self, f) for f in STATIC_FIELDS}
+
+    def to_json_dict(self) -> dict:
+        """A JSON-serialisable view (traced leaves as Python floats or lists)."""
+        out: dict[str, Any] = self.static_dict()
+        for f in TRACED_FIELDS:
+            if f == "pendulum":
+                p = self.pendulum
+                out["pendulum"] = {
+                    **{k: np.asarray(getattr(p, k)).tolist() for k in pendulum._DATA_FIELDS},
+                    "substeps": p.substeps,
+                }
+            else:
+                out[f] = np.asarray(getattr(self, f)).tolist()
+        return out
+
+
+TRACED_FIELDS = tuple(
+    f.name for f in dataclasses.fields(TrainConfig) if f.name not in STATIC_FIELDS
+)
+jax.tree_util.register_dataclass(
+    TrainConfig, data_fields=list(TRACED_FIELDS), meta_fields=list(STATIC_FIELDS)
+)
+
+_POSITIVE = ("learning_rate", "age_scale", "guided_variance_scale", "guided_variance_floor",
+             "inverse_temperature", "energy_width", "candidate_scale", "candidate_floor")
+_NON_NEGATIVE = ("age_penalty", "novelty_tol")
+
+
+def _fail(field: str, message: str):
+    raise ValueError(f"TrainConfig.{field}: {message}")
+
+
+def validate(cfg: TrainConfig) -> TrainConfig:
+    """Checks every field; raises `ValueError` naming the first bad one. Returns cfg."""
+    if cfg.method not in METHODS:
+        _fail("method", f"unknown method {cfg.method!r}; choose from {METHODS}")
+    if cfg.controller not in CONTROLLERS:
+        _fail("controller", f"unknown controller {cfg.controller!r}; choose from {CONTROLLERS}")
+    if cfg.age_fn not in AGE_FUNCTIONS:
+        _fail("age_fn", f"unknown age function {cfg.age_fn!r}; choose from {AGE_FUNCTIONS}")
+    if cfg.optimizer not in OPTIMIZERS:
+        _fail("optimizer", f"unknown optimizer {cfg.optimizer!r}; choose from {OPTIMIZERS}")
+    for f in ("num_updates", "episodes_per_update", "episode_length", "gp_capacity",
+              "hyperfit_samples", "hyperfit_steps", "num_candidates"):
+        v = getattr(cfg, f)
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            _fail(f, f"must be a positive integer, got {v!r}")
+    if cfg.num_candidates < 2:
+        _fail("num_candidates", f"the Gibbs policy needs at least 2 candidates, got {cfg.num_candidates}")
+    if not isinstance(cfg.use_baseline, bool):
+        _fail("use_baseline", f"must be a bool, got {cfg.use_baseline!r}")
+    for f in TRACED_FIELDS:
+        if f == "pendulum":
+            continue
+        v = getattr(cfg, f)
+        if isinstance(v, jax.core.Tracer):
+            continue
+        arr = np.asarray(v, dtype=float)
+        if not np.all(np.isfinite(arr)):
+            _fail(f, f"must be finite, got {v!r}")
+        if f in _POSITIVE and np.any(arr <= 0):
+            _fail(f, f"must be > 0, got {v!r}")
+        if f in _NON_NEGATIVE and np.any(arr < 0):
+            _fail(f, f"must be >= 0, got {v!r}")
+    if not isinstance(cfg.discount, jax.core.Tracer):
+        d = np.asarray(cfg.discount, dtype=float)
+        if np.any((d <= 0) | (d > 1)):
+            _fail("discount", f"must be in (0, 1], got {cfg.discount!r}")
+    if not isinstance(cfg.pendulum, pendulum.PendulumParams):
+        _fail("pendulum", f"must be PendulumParams (pendulum.make_params), got {type(cfg.pendulum)}")
+    return cfg
+
+
+def make_config(*, pendulum_overrides: dict | None = None, **fields) -> TrainConfig:
+    """A validated `TrainConfig`; traced fields are cast to arrays of the default float dtype."""
+    unknown = set(fields) - {f.name for f in dataclasses.fields(TrainConfig)}
+    if unknown:
+        raise TypeError(f"unknown TrainConfig field(s): {sorted(unknown)}")
+    if fields.get("pendulum") is None:
+        fields["pendulum"] = pendulum.make_params(**(pendulum_overrides or {}))
+    cfg = TrainConfig(**fields)
+    validate(cfg)
+    dtype = jnp.result_type(float)
+    return cfg.replace(
+        **{f: jnp.asarray(getattr(cfg, f), dtype) for f in TRACED_FIELDS if f != "pendulum"}
+    )
+
+
+PRESETS: dict[str, dict] = {
+    # Paper §VI: 400 updates x 3 episodes x 50 steps at 200 Hz, 2000 samples for the hyperfit.
+    "paper": dict(num_updates=400, episodes_per_update=3, episode_length=50),
+    # Long enough for a swing-up from the bottom (paper: < 200 steps cannot contain one):
+    # 2 s episodes, an RBF controller, start hanging down.
+    "swingup": dict(
+        num_updates=200,
+        episodes_per_update=3,
+        episode_length=400,
+        controller="rbf",
+        gp_capacity=200,
+        pendulum_overrides=dict(start_mean=(0.0, 0.0), start_std=(0.2, 0.2)),
+    ),
+    # A few seconds on a CPU: for tests and smoke runs.
+    "tiny": dict(
+        num_updates=6,
+        episodes_per_update=2,
+        episode_length=20,
+        gp_capacity=16,
+        hyperfit_samples=100,
+        hyperfit_steps=10,
+        num_candidates=4,
+    ),
+}
+
+
+def preset(name: str, **overrides) -> TrainConfig:
+    """The named preset ('paper', 'swingup', 'tiny') with field overrides, validated."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
+    fields = dict(PRESETS[name])
+    pend = dict(fields.pop("pendulum_overrides", {}) or {})
+    pend.update(overrides.pop("pendulum_overrides", {}) or {})
+    fields.update(overrides)
+    return make_config(pendulum_overrides=pend, **fields)
