@@ -35,6 +35,7 @@ STATIC_FIELDS = (
     "gp_capacity",
     "hyperfit_samples",
     "hyperfit_steps",
+    "hyperfit_subset",
     "num_candidates",
     "controller",
     "age_fn",
@@ -57,6 +58,9 @@ class TrainConfig:
       hyperfit_samples: (state-action, return) pairs from the initial policy for the hyperparameter
         fit; rounded up to whole episodes.
       hyperfit_steps: Adam steps of the marginal-likelihood fit.
+      hyperfit_subset: the marginal likelihood is that of a random subset of this many of the
+        collected pairs (a 2000-point Cholesky per Adam step costs ~1 s on a 2-core CPU; 500
+        points cost 1/64 of it). Set it >= hyperfit_samples to use every pair.
       num_candidates: K, candidate actions of the Gibbs policy.
       controller: 'linear' or 'rbf'.
       age_fn: 'exp' (eq. 14) or 'logit' (eq. 15).
@@ -88,7 +92,8 @@ class TrainConfig:
     episode_length: int = 50
     gp_capacity: int = 100
     hyperfit_samples: int = 2000
-    hyperfit_steps: int = 150
+    hyperfit_steps: int = 100
+    hyperfit_subset: int = 500
     num_candidates: int = 16
     controller: str = "linear"
     age_fn: str = "exp"
@@ -165,7 +170,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     if cfg.optimizer not in OPTIMIZERS:
         _fail("optimizer", f"unknown optimizer {cfg.optimizer!r}; choose from {OPTIMIZERS}")
     for f in ("num_updates", "episodes_per_update", "episode_length", "gp_capacity",
-              "hyperfit_samples", "hyperfit_steps", "num_candidates"):
+              "hyperfit_samples", "hyperfit_steps", "hyperfit_subset", "num_candidates"):
         v = getattr(cfg, f)
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
             _fail(f, f"must be a positive integer, got {v!r}")
@@ -212,7 +217,15 @@ def make_config(*, pendulum_overrides: dict | None = None, **fields) -> TrainCon
 
 PRESETS: dict[str, dict] = {
     # Paper §VI: 400 updates x 3 episodes x 50 steps at 200 Hz, 2000 samples for the hyperfit.
-    "paper": dict(num_updates=400, episodes_per_update=3, episode_length=50),
+    # The paper does not give the start states; a 0.25 s episode cannot swing the pendulum up, so
+    # it starts 0.5 rad off upright with a small spread (the same for every method), and the task
+    # is to push it back up. The learning rate was chosen on seeds 100-104 (not reported).
+    "paper": dict(
+        num_updates=400,
+        episodes_per_update=3,
+        episode_length=50,
+        pendulum_overrides=dict(start_mean=(math.pi - 0.5, 0.0), start_std=(0.1, 0.1)),
+    ),
     # Long enough for a swing-up from the bottom (paper: < 200 steps cannot contain one):
     # 2 s episodes, an RBF controller, start hanging down.
     "swingup": dict(

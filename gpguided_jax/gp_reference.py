@@ -6,7 +6,8 @@ so it is an implementation independent of the fixed-slot, rank-one formulation i
 `gpguided_jax.sparse_gp`. The numerical guards are the same as there (see `sparse_gp.update`):
 
 * a non-finite input or target is skipped (the GP is left unchanged);
-* the latent variance is floored: v = max(k** + k^T C k, variance_floor);
+* the latent variance is floored: v = max(k** + k^T C k, gamma, variance_floor);
+* the denominators Q_jj and Q_jj + C_jj are floored at eps / k** and 100 eps Q_jj;
 * a point is added as a basis vector iff gamma >= max(novelty_tol, 10 eps) * k**;
 * in the projected update gamma is clipped to [0, v] (exact arithmetic gives 0 <= gamma <= v);
 * the age penalty g_exp has its exponent capped at log(finfo.max) / 2, and g_logit uses
@@ -67,7 +68,7 @@ class OnlineGP:
     ):
         self.capacity = int(capacity)
         self.dtype = np.dtype(dtype)
-        eps = float(np.finfo(self.dtype).eps)
+        eps = self.eps = float(np.finfo(self.dtype).eps)
         self.lengthscales = np.asarray(lengthscales, self.dtype)
         self.signal_variance = self.dtype.type(signal_variance)
         self.noise_variance = self.dtype.type(noise_variance)
@@ -110,11 +111,11 @@ class OnlineGP:
         kxx = self.signal_variance
         Ck = self.C @ k
         mean = k @ self.alpha
-        v = max(kxx + k @ Ck, self.variance_floor)
-        q = (y - mean) / (self.noise_variance + v)
-        r = -1.0 / (self.noise_variance + v)
         e_hat = self.Q @ k
         gamma = kxx - k @ e_hat
+        v = max(kxx + k @ Ck, gamma, self.variance_floor)
+        q = (y - mean) / (self.noise_variance + v)
+        r = -1.0 / (self.noise_variance + v)
         if gamma >= self.novelty_tol * kxx:
             s = np.append(Ck, 1.0)
             self.alpha = np.append(self.alpha, 0.0) + q * s
@@ -141,7 +142,8 @@ class OnlineGP:
     def scores(self) -> np.ndarray:
         """eq. 13: alpha_i^2 / (Q_ii + C_ii) + lambda g(t_i)."""
         tiny = np.finfo(self.dtype).eps / self.signal_variance
-        kl = self.alpha**2 / np.maximum(np.diag(self.Q) + np.diag(self.C), tiny)
+        q_diag = np.diag(self.Q)
+        kl = self.alpha**2 / np.maximum(q_diag + np.diag(self.C), 100 * self.eps * q_diag + tiny)
         if self.age_penalty == 0.0:
             return kl
         g = age_function(self.timestamps, self.age_scale, self.age_fn, self.logit_eps, self.dtype)
@@ -153,7 +155,7 @@ class OnlineGP:
         a_star = self.alpha[j]
         c_star = self.C[j, j]
         q_star = max(self.Q[j, j], tiny)
-        qc_star = max(self.Q[j, j] + self.C[j, j], tiny)
+        qc_star = max(self.Q[j, j] + self.C[j, j], 100 * self.eps * q_star + tiny)
         del c_star
         Q_col = np.delete(self.Q[:, j], j)
         C_col = np.delete(self.C[:, j], j)

@@ -461,8 +461,11 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
         energy = gibbs_energy(candidates, normalised_q, mean_action, ctx.energy_width)
         # log pi_J = beta E_J - logsumexp(beta E) = -logsumexp(beta (E - E_J)): relative to the
         # selected candidate, so that when pi_J -> 1 neither the value nor its (forward-mode)
-        # derivative is a difference of two nearly equal numbers.
-        return -jax.nn.logsumexp(ctx.inverse_temperature * (energy - energy[aux.index]))
+        # derivative is a difference of two nearly equal numbers. The J-th entry is set to an
+        # exact 0 because XLA may recompute E_J in a fusion and differ from E[J] by an ulp.
+        selected = jnp.arange(candidates.shape[0]) == aux.index
+        relative_energy = jnp.where(selected, 0.0, energy - energy[aux.index])
+        return -jax.nn.logsumexp(ctx.inverse_temperature * relative_energy)
 
     def grad_log_prob(theta, state, action, ctx, aux):
         del action
@@ -471,9 +474,12 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
         energy, probs = gibbs_distribution(aux.candidates, aux.normalised_q, mean_action, ctx)
         # dE_j / dc = E_j (a_j - c) / sigma_e^2 (eq. 22)
         denergy_dc = energy * (aux.candidates - mean_action) / (ctx.energy_width**2)
-        # beta (dE_J - sum_j pi_j dE_j) written as beta sum_j pi_j (dE_J - dE_j) (sum_j pi_j = 1):
-        # the j = J term vanishes exactly, so no cancellation when pi_J -> 1.
-        dlogpi_dc = ctx.inverse_temperature * (probs @ (denergy_dc[aux.index] - denergy_dc))
+        # beta (dE_J - sum_j pi_j dE_j) written as beta sum_j pi_j (dE_J - dE_j) (sum_j pi_j = 1),
+        # with the j = J term an exact 0, so that the score stays accurate relative to its own
+        # size, O(1 - pi_J), when pi_J -> 1.
+        selected = jnp.arange(aux.candidates.shape[0]) == aux.index
+        denergy_gap = jnp.where(selected, 0.0, denergy_dc[aux.index] - denergy_dc)
+        dlogpi_dc = ctx.inverse_temperature * (probs @ denergy_gap)
         return PolicyParams(
             controller=_scale_tree(grad_mean, dlogpi_dc), log_std=jnp.zeros_like(theta.log_std)
         )

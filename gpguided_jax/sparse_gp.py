@@ -166,11 +166,12 @@ def update(
     costs two matrix-vector products and one rank-three write of C and Q, O(M^2), no O(M^3) work.
 
     Guards (all branch-free): a non-finite x or y, or ``valid=False``, leaves the state unchanged
-    (the pair is SKIPPED; it never reaches alpha or C); gamma is compared with
+    (the pair is SKIPPED; it never reaches alpha or C); v is floored at max(gamma, floor) (exact
+    arithmetic gives v >= gamma since Q + C is PSD); gamma is compared with
     max(novelty_tol, 10 eps) k** so that 1/gamma stays finite; in the projected update gamma is
     clipped to [0, v] (exact arithmetic gives 0 <= gamma <= v, and this keeps eta in
-    [1, (sigma_n^2+v)/sigma_n^2]); the denominators Q_jj and Q_jj + C_jj of the deletion are floored
-    at eps / k**; inactive slots are zeroed after every update; C and Q are kept exactly symmetric
+    [1, (sigma_n^2+v)/sigma_n^2]); the denominators Q_jj and Q_jj + C_jj of the score and the deletion
+    are floored at eps / k** and 100 eps Q_jj; inactive slots are zeroed after every update; C and Q are kept exactly symmetric
     by construction (every change is a sum of w u u^T terms formed elementwise), which is what an
     explicit symmetrisation would achieve, without its extra pass.
 
@@ -215,11 +216,18 @@ def update(
     tiny = eps / kxx
     Ck = C @ k
     e_hat = Q @ k
-    v = jnp.maximum(kxx + k @ Ck, variance_floor)
+    gamma = kxx - k @ e_hat
+    # Q + C is PSD in exact arithmetic, so v >= gamma; flooring v there stops the feedback loop in
+    # which a rounding-negative v gives a huge r that drives C further negative (seen in float32).
+    v_raw = kxx + k @ Ck
+    v = jnp.maximum(jnp.maximum(v_raw, gamma), variance_floor)
+    # v_raw < gamma means rounding has made Q + C indefinite along k; shrinking C further along
+    # that direction feeds the divergence, so C is then left as it is for this projected update
+    # (alpha is still updated). Exact arithmetic never takes this branch.
+    psd_ok = v_raw >= gamma
     denom = hyper.noise_variance + v
     q = (y - k @ alpha) / denom
     r = -1.0 / denom
-    gamma = kxx - k @ e_hat
 
     add = ok & (gamma >= novelty_tol * kxx)
     slots = jnp.arange(num_slots)
@@ -230,7 +238,7 @@ def update(
     eta = 1.0 / (1.0 + gamma_proj * r)
     s = Ck + jnp.where(add, onehot_new.astype(dtype), e_hat)
     q_eff = jnp.where(ok, jnp.where(add, q, q * eta), 0.0)
-    r_eff = jnp.where(ok, jnp.where(add, r, r * eta), 0.0)
+    r_eff = jnp.where(ok & (psd_ok | add), jnp.where(add, r, r * eta), 0.0)
     u = e_hat - onehot_new.astype(dtype)
     w_q = jnp.where(add, 1.0 / jnp.where(add, gamma, 1.0), 0.0)
 
@@ -242,7 +250,11 @@ def update(
     do_delete = add & (jnp.sum(mask) >= num_slots - 1)
     diag_c1 = jnp.diagonal(C) + r_eff * s * s
     diag_q1 = jnp.diagonal(Q) + w_q * u * u
-    score = alpha1 * alpha1 / jnp.maximum(diag_q1 + diag_c1, tiny)
+    # Q_ii + C_ii > 0 in exact arithmetic but is a difference of nearly equal numbers when the
+    # noise is small (C ~ -Q); it is floored at 100 eps Q_ii so that the deletion below never
+    # divides by a rounding-sized or negative number (this is what keeps float32 finite).
+    rel_floor = 100.0 * eps
+    score = alpha1 * alpha1 / jnp.maximum(diag_q1 + diag_c1, rel_floor * diag_q1 + tiny)
     g = age_function(timestamps1, mask1, jnp.asarray(age_scale, dtype), age_fn, logit_eps)
     score = score + jnp.asarray(age_penalty, dtype) * g
     score = jnp.where(mask1, score, jnp.inf)
@@ -253,7 +265,8 @@ def update(
     a_star = alpha1[j_del]
     qc_col = q_col + c_col
     w_del_q = jnp.where(do_delete, 1.0 / jnp.maximum(q_col[j_del], tiny), 0.0)
-    w_del_qc = jnp.where(do_delete, 1.0 / jnp.maximum(qc_col[j_del], tiny), 0.0)
+    qc_floor = rel_floor * jnp.maximum(q_col[j_del], tiny) + tiny
+    w_del_qc = jnp.where(do_delete, 1.0 / jnp.maximum(qc_col[j_del], qc_floor), 0.0)
     keep = mask1 & ~(do_delete & (slots == j_del))
 
     alpha2 = jnp.where(keep, alpha1 - (a_star * w_del_qc) * qc_col, 0.0)
@@ -276,8 +289,12 @@ def update(
         - c_del[:, None] * c_del[None, :]
     )
     Q2 = Q + d_ins[:, None] * d_ins[None, :] - b_del[:, None] * b_del[None, :]
-    C2 = jnp.where(keep2, C2, 0.0)
-    Q2 = jnp.where(keep2, Q2, 0.0)
+    # Last-resort guard, fused into the same pass: an entry that would overflow keeps its old
+    # value, so no inf/NaN can enter the state even when float32 rounding has made the
+    # recursion diverge (see the module notes on float32).
+    C2 = jnp.where(keep2, jnp.where(jnp.isfinite(C2), C2, C), 0.0)
+    Q2 = jnp.where(keep2, jnp.where(jnp.isfinite(Q2), Q2, Q), 0.0)
+    alpha2 = jnp.where(jnp.isfinite(alpha2), alpha2, jnp.where(keep, alpha, 0.0))
     basis_vectors = jnp.where(onehot_new[:, None], x[None, :], state.basis_vectors)
     return SparseGPState(
         basis_vectors=basis_vectors,

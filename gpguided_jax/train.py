@@ -173,7 +173,12 @@ def make_train(config: TrainConfig):
         return xs, returns.reshape(-1)
 
     def fit_kernel(key, cfg=config):
-        xs, ys = collect(key, cfg)
+        key_data, key_subset = jax.random.split(key)
+        xs, ys = collect(key_data, cfg)
+        n = min(static.hyperfit_subset, xs.shape[0])
+        if n < xs.shape[0]:
+            idx = jax.random.choice(key_subset, xs.shape[0], (n,), replace=False)
+            xs, ys = xs[idx], ys[idx]
         return hyperfit.fit(xs, ys, num_steps=static.hyperfit_steps).params
 
     def init(key, cfg=config, kernel=None):

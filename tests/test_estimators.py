@@ -100,33 +100,31 @@ def _theta(controller):
 
 
 def _one_step_batches(policy, theta, ctx, key, q_fn=None, baseline=None):
-    """Per-batch REINFORCE (eq. 4) and GP (eq. 9) estimates, flattened: (NUM_BATCHES, P) each."""
+    """Per-batch REINFORCE (eq. 4) and GP (eq. 9) estimates, flattened: (NUM_BATCHES, P) each.
+
+    Every draw is one episode of one step; draws are vmapped flat and reshaped to
+    (batches, episodes, steps = 1).
+    """
     k_act, k_noise = jax.random.split(key)
-    keys = jax.random.split(k_act, (NUM_BATCHES, NUM_EPISODES, 1))
-    sample = jax.vmap(jax.vmap(jax.vmap(policy.sample, (0, None, None, None)),
-                               (0, None, None, None)), (0, None, None, None))
-    actions, aux = sample(keys, theta, STATE, ctx)  # (B, N, 1)
-    score = jax.vmap(jax.vmap(jax.vmap(policy.grad_log_prob, (None, None, 0, None, 0)),
-                              (None, None, 0, None, 0)), (None, None, 0, None, 0))
-    scores = score(theta, STATE, actions, ctx, aux)  # leaves (B, N, 1, ...)
+    total = NUM_BATCHES * NUM_EPISODES
+    keys = jax.random.split(k_act, total)
+    actions, aux = jax.vmap(policy.sample, (0, None, None, None))(keys, theta, STATE, ctx)
+    scores = jax.vmap(policy.grad_log_prob, (None, None, 0, None, 0))(
+        theta, STATE, actions, ctx, aux
+    )
+    shape = (NUM_BATCHES, NUM_EPISODES, 1)
+    scores = jax.tree_util.tree_map(lambda x: x.reshape(shape + x.shape[1:]), scores)
     exact_q = -((actions - TARGET) ** 2)
     rewards = exact_q + REWARD_STD * jax.random.normal(k_noise, actions.shape)
     q_values = exact_q if q_fn is None else q_fn(actions)
-    b = None if baseline is None else jnp.broadcast_to(baseline, actions.shape)
+    rewards, q_values = rewards.reshape(shape), q_values.reshape(shape)
+    b = None if baseline is None else jnp.broadcast_to(baseline, shape)
     reinforce = jax.vmap(estimators.reinforce_gradient, (0, 0, None, 0 if b is not None else None))(
         scores, rewards, 0.9, b
     )
     gp = jax.vmap(estimators.gp_policy_gradient)(scores, q_values)
     flat = jax.vmap(lambda g: ravel_pytree(g)[0])
-    return flat(reinforce), flat(gp)
-
-
-_one_step_batches_compiled = jax.jit(_one_step_batches, static_argnums=(0, 4))
-
-
-def _one_step_batches_jit(*args):
-    reinforce, gp = _one_step_batches_compiled(*args)
-    return np.asarray(reinforce), np.asarray(gp)
+    return np.asarray(flat(reinforce)), np.asarray(flat(gp))
 
 
 def _assert_contains(estimates, truth, name):
@@ -171,7 +169,7 @@ def test_unbiased_fixed_noise_reinforce_and_gp_estimators(capsys):
         log_std=-2.0 * sigma2,
     ))[0])
 
-    reinforce, gp_exact = _one_step_batches_jit(policy, theta, ctx, jax.random.PRNGKey(0))
+    reinforce, gp_exact = _one_step_batches(policy, theta, ctx, jax.random.PRNGKey(0))
     _assert_contains(reinforce, truth, "reinforce")
     _assert_contains(gp_exact, truth, "gp (exact Q)")
     ratio_exact = _variance_ratio(reinforce, gp_exact)
@@ -183,8 +181,8 @@ def test_unbiased_fixed_noise_reinforce_and_gp_estimators(capsys):
     fit_actions = c + 1.5 * jax.random.normal(k_fit_a, (300,))
     fit_targets = -((fit_actions - TARGET) ** 2) + REWARD_STD * jax.random.normal(k_fit_r, (300,))
     gp_state = _exact_gp_at_state(fit_actions, fit_targets, hyper)
-    q_fn = jax.vmap(jax.vmap(jax.vmap(lambda a: policies.gp_mean(gp_state, hyper, STATE, a))))
-    reinforce2, gp_fitted = _one_step_batches_jit(policy, theta, ctx, jax.random.PRNGKey(2), q_fn)
+    q_fn = jax.vmap(lambda a: policies.gp_mean(gp_state, hyper, STATE, a))
+    reinforce2, gp_fitted = _one_step_batches(policy, theta, ctx, jax.random.PRNGKey(2), q_fn)
     ratio_fitted = _variance_ratio(reinforce2, gp_fitted)
     # A fitted GP is biased by its fit error: require the mean within 10% of |grad J|.
     bias = np.abs(gp_fitted.mean(axis=0) - truth).max() / np.abs(truth).max()
@@ -193,7 +191,7 @@ def test_unbiased_fixed_noise_reinforce_and_gp_estimators(capsys):
 
     # Baseline b(s) = V(s) = -((c - a*)^2 + sigma^2) (a function of the state only): still
     # unbiased, lower variance.
-    reinforce_b, _ = _one_step_batches_jit(
+    reinforce_b, _ = _one_step_batches(
         policy, theta, ctx, jax.random.PRNGKey(0), None, -((c - TARGET) ** 2 + sigma2)
     )
     _assert_contains(reinforce_b, truth, "reinforce with baseline")
@@ -225,6 +223,6 @@ def test_unbiased_guided_variance_reinforce():
     truth = np.asarray(ravel_pytree(jax.grad(objective)(theta))[0])
     _, dvar, _, _ = policies.guided_variance_and_grad(controller, theta.controller, STATE, ctx)
     assert float(jnp.max(jnp.abs(ravel_pytree(dvar)[0]))) > 0.05  # the variance path matters
-    reinforce, gp_exact = _one_step_batches_jit(policy, theta, ctx, jax.random.PRNGKey(3))
+    reinforce, gp_exact = _one_step_batches(policy, theta, ctx, jax.random.PRNGKey(3))
     _assert_contains(reinforce, truth, "guided reinforce")
     _assert_contains(gp_exact, truth, "guided gp (exact Q)")

@@ -152,29 +152,7 @@ def score_error_fn(policy_name, controller_name):
         hand = policy.grad_log_prob(theta, state, action, ctx, aux)
         forward = jax.jacfwd(policy.log_prob)(theta, state, action, ctx, aux)
         reverse = jax.grad(policy.log_prob)(theta, state, action, ctx, aux)
-        # Size of the terms that cancel in reverse mode for the Gibbs score, where
-        # beta (dE_J - sum_j pi_j dE_j) is accumulated as a sum and pi_J may be 1 - 1e-30.
-        mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
-        energy = policies.gibbs_energy(
-            aux.candidates, aux.normalised_q, mean_action, ctx.energy_width
-        )
-        denergy = energy * (aux.candidates - mean_action) / ctx.energy_width**2
-        cancelling = (
-            ctx.inverse_temperature
-            * jnp.max(jnp.abs(denergy), initial=0.0)
-            * jnp.max(jnp.abs(ravel_pytree(grad_mean)[0]))
-        )
-
-        def within_conditioning(auto):
-            diff = jnp.max(jnp.abs(ravel_pytree(hand)[0] - ravel_pytree(auto)[0]))
-            return diff <= 1e-8 * jnp.max(jnp.abs(ravel_pytree(auto)[0])) + 1e-13 * cancelling
-
-        return (
-            relative_error(hand, forward),
-            relative_error(hand, reverse),
-            within_conditioning(forward) & within_conditioning(reverse),
-            ravel_pytree(hand)[0],
-        )
+        return relative_error(hand, forward), relative_error(hand, reverse), ravel_pytree(hand)[0]
 
     return fn
 
@@ -216,28 +194,22 @@ def _with_edge_examples(test):
 @requires_x64
 @pytest.mark.parametrize("controller_name", CONTROLLER_NAMES)
 @pytest.mark.parametrize("policy_name", policies.POLICY_NAMES)
-@settings(max_examples=40, deadline=None, derandomize=True)
+@settings(max_examples=25, deadline=None, derandomize=True)
 @_with_edge_examples
 @given(**_case_strategy)
 def test_grad_log_prob_matches_autodiff(policy_name, controller_name, seed, **case):
-    """Hand score == autodiff score to 1e-8 relative (norm-wise, float64).
+    """Hand score == autodiff score to 1e-8 relative (norm-wise, float64), against both
+    reverse-mode (jax.grad) and forward-mode (jax.jacfwd) autodiff of log_prob.
 
-    References: reverse-mode (jax.grad) and forward-mode (jax.jacfwd) autodiff of log_prob.
-    For the Gibbs policy the difference may in addition be 1e-13 times the size of the terms
-    that cancel: when pi_J -> 1 the score beta sum_j pi_j (dE_J - dE_j) is O(1 - pi_J) while
-    beta dE_J is O(beta / sigma_e), and jax.grad (and, under jit, XLA's re-fused exp) forms it
-    as a difference of those O(1) terms, so no implementation can be more accurate than
-    eps * beta * max|dE_j| there. Everywhere else the plain 1e-8 relative bound is checked.
+    For the Gibbs policy this holds even when pi_J -> 1 (score O(1 - pi_J) << its terms)
+    because both log_prob and the hand score are written relative to the selected candidate.
     """
-    rel_fwd, rel_rev, gibbs_ok, hand = score_error_fn(policy_name, controller_name)(
+    rel_fwd, rel_rev, hand = score_error_fn(policy_name, controller_name)(
         jax.random.PRNGKey(seed), _case_inputs(case)
     )
     assert bool(jnp.all(jnp.isfinite(hand)))
-    if policy_name == "gibbs":
-        assert bool(gibbs_ok), (float(rel_fwd), float(rel_rev))
-    else:
-        assert float(rel_fwd) <= 1e-8, (policy_name, controller_name, float(rel_fwd))
-        assert float(rel_rev) <= 1e-8, (policy_name, controller_name, float(rel_rev))
+    assert float(rel_fwd) <= 1e-8, (policy_name, controller_name, float(rel_fwd))
+    assert float(rel_rev) <= 1e-8, (policy_name, controller_name, float(rel_rev))
 
 
 @functools.lru_cache(maxsize=None)
@@ -261,7 +233,7 @@ def variance_grad_error_fn(controller_name):
 
 @requires_x64
 @pytest.mark.parametrize("controller_name", CONTROLLER_NAMES)
-@settings(max_examples=40, deadline=None, derandomize=True)
+@settings(max_examples=25, deadline=None, derandomize=True)
 @_with_edge_examples
 @given(**_case_strategy)
 def test_guided_variance_gradient_eq19(controller_name, seed, **case):
