@@ -5,6 +5,13 @@ semi-definite (Csato-Opper sign; the paper writes C with the opposite sign).
 
 Buffers have M + 1 slots (capacity M, plus one slot so that a new point can be inserted before the
 KL-optimal deletion). An inactive slot has mask False, alpha 0 and zero rows/columns in C and Q.
+
+float32: the recursion keeps Q = K_B^{-1} and C ~ -(K_B + sigma_n^2 I)^{-1} by rank-one updates, so
+Q + C (whose diagonal enters the deletion score) is a difference of nearly equal numbers when
+sigma_n^2 << sigma_f^2 and K_B is ill-conditioned. In float32 this loses positive
+semi-definiteness after a few thousand updates on pendulum-like data and the state stops being
+accurate; the guards in `update` keep it finite (no inf/NaN ever enters the state), but float64,
+the package default, is what gives correct numbers.
 """
 
 import math
@@ -170,10 +177,13 @@ def update(
     arithmetic gives v >= gamma since Q + C is PSD); gamma is compared with
     max(novelty_tol, 10 eps) k** so that 1/gamma stays finite; in the projected update gamma is
     clipped to [0, v] (exact arithmetic gives 0 <= gamma <= v, and this keeps eta in
-    [1, (sigma_n^2+v)/sigma_n^2]); the denominators Q_jj and Q_jj + C_jj of the score and the deletion
-    are floored at eps / k** and 100 eps Q_jj; inactive slots are zeroed after every update; C and Q are kept exactly symmetric
-    by construction (every change is a sum of w u u^T terms formed elementwise), which is what an
-    explicit symmetrisation would achieve, without its extra pass.
+    [1, (sigma_n^2+v)/sigma_n^2]); a projected update along which Q + C has lost positive
+    semi-definiteness (v_raw < gamma, rounding only) leaves C unchanged; the denominators Q_jj and
+    Q_jj + C_jj of the score and the deletion are floored at eps / k** and 100 eps Q_jj; an entry of
+    alpha, C or Q that would overflow keeps its old value; inactive slots are zeroed after every
+    update. C and Q are kept bitwise symmetric by construction (every change is a sum of
+    +-a a^T terms formed elementwise), which is what an explicit symmetrisation would achieve,
+    without its extra pass over both matrices.
 
     Args:
       state: the current `SparseGPState` (its dtype is the computation dtype).

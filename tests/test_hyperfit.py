@@ -34,7 +34,7 @@ def test_check_grads_and_closed_form_gradient():
     rng = np.random.default_rng(1)
     xs, ys = jnp.array(rng.normal(size=(25, 2))), jnp.array(rng.normal(size=25))
     lp = hyperfit.to_log(kernels.make_kernel_params([0.8, 1.5], 1.1, 0.3))
-    check_grads(lambda p: hyperfit.nlml_log(p, xs, ys), (lp,), order=2, modes=("fwd", "rev"))
+    check_grads(lambda p: hyperfit.nlml_log(p, xs, ys), (lp,), order=1, modes=("fwd", "rev"))
     loss, grads = hyperfit.nlml_and_grad(lp, xs, ys)
     auto = jax.grad(hyperfit.nlml_log)(lp, xs, ys)
     np.testing.assert_allclose(loss, hyperfit.nlml_log(lp, xs, ys), rtol=1e-12)
