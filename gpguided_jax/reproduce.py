@@ -294,7 +294,10 @@ def reproduce(
                     kernels = train_lib.kernels.KernelParams(*(f[k] for k in train_lib.kernels.KernelParams._fields))
         if kernels is None:
             t0 = time.perf_counter()
-            kernels = jax.device_get(fit(seed_keys(seeds)))
+            n_dev = mesh.devices.size
+            padded = list(seeds) + [seeds[-1] + 1 + i for i in range((-len(seeds)) % n_dev)]
+            fitted = fit(_shard(seed_keys(padded), mesh))
+            kernels = jax.tree_util.tree_map(lambda x: np.asarray(x)[: len(seeds)], jax.device_get(fitted))
             np.savez(kpath, seeds=np.asarray(seeds), **kernels._asdict())
             progress(f"hyperparameter fit for {len(seeds)} seeds: {time.perf_counter() - t0:.1f}s")
 

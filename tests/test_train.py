@@ -117,27 +117,17 @@ def test_unknown_preset_and_field():
 
 @pytest.mark.parametrize("method", ["gp_pg", "guided_variance", "guided_direction"])
 def test_gp_methods_improve_on_a_small_problem(method):
-    """Start hanging slightly off upright with few updates: the reward must rise.
+    """The paper preset's task at a reduced size (120 updates, M = 30, 4 fixed seeds).
 
-    Loose threshold on fixed seeds: the mean reward over the last 5 updates beats the first 5
-    (averaged over 4 seeds).
+    Loose threshold: the mean reward per step over the last 20 updates beats the first 20 by
+    0.01 on average over the seeds (measured: +0.035 to +0.048; the noise-free optimum is ~0.1
+    above the start).
     """
-    cfg = C.preset(
-        "tiny",
-        method=method,
-        num_updates=40,
-        episodes_per_update=3,
-        episode_length=40,
-        gp_capacity=40,
-        hyperfit_samples=300,
-        hyperfit_steps=30,
-        num_candidates=8,
-        learning_rate=2e-3,
-        pendulum_overrides=dict(start_mean=(2.6, 0.0), start_std=(0.1, 0.1), reward_noise_std=0.1),
-    )
+    cfg = C.preset("paper", method=method, num_updates=120, gp_capacity=30, hyperfit_samples=500,
+                   hyperfit_steps=30, hyperfit_subset=300, num_candidates=8)
     _, rec = jax.jit(jax.vmap(T.make_train(cfg)))(jax.random.split(jax.random.PRNGKey(42), 4))
-    r = np.asarray(rec.mean_reward).mean(0)
-    assert r[-5:].mean() > r[:5].mean() + 0.05, r
+    r = np.asarray(rec.mean_reward)
+    assert r[:, -20:].mean() > r[:, :20].mean() + 0.01, (r[:, :20].mean(1), r[:, -20:].mean(1))
 
 
 def test_resume_equals_uninterrupted(tmp_path):
@@ -158,17 +148,26 @@ def test_resume_equals_uninterrupted(tmp_path):
 
 
 def test_two_host_devices_equal_one(tmp_path):
-    """Runs the CLI in subprocesses with 2 forced host CPU devices, sharded over 1 and over 2."""
+    """Runs the CLI in subprocesses with 2 forced host CPU devices.
+
+    Seeds 0-3 sharded over 2 devices vs the same seeds on one device, and seeds 0-1 on one device
+    vs the first device's share. The results are NOT bitwise identical: XLA compiles the sharded
+    program differently and last-ulp differences (measured ~2.5e-9 relative after 6 updates)
+    grow through training. So agreement is asserted at 1e-6 relative, far below any difference
+    between seeds (~1e-1).
+    """
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     outs = []
-    for n in (1, 2):
-        out = tmp_path / f"dev{n}"
+    for n, seeds in ((1, 2), (2, 4), (1, 4)):
+        out = tmp_path / f"dev{n}_seeds{seeds}"
         cmd = [sys.executable, "-m", "gpguided_jax.cli", "reproduce", "--preset", "tiny",
-               "--seeds", "4", "--methods", "reinforce", "guided_variance", "--devices", str(n),
-               "--chunk-size", "3", "--out", str(out)]
+               "--seeds", str(seeds), "--methods", "reinforce", "guided_variance", "--devices",
+               str(n), "--chunk-size", "3", "--out", str(out)]
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
         assert proc.returncode == 0, proc.stderr[-3000:]
         outs.append(np.load(out / "results.npz"))
         assert f"TFRT_CPU_{n - 1}" in (out / "config.json").read_text()
+    one, two, one_all = outs
     for k in ("mean_reward", "exploration_std", "grad_norm", "num_basis_vectors"):
-        np.testing.assert_allclose(outs[0][k], outs[1][k], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(one[k], two[k][:, :2], rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(one_all[k], two[k], rtol=1e-6, atol=1e-9)
