@@ -153,7 +153,8 @@ def test_two_host_devices_equal_one(tmp_path):
     Seeds 0-3 sharded over 2 devices vs the same seeds on one device, and seeds 0-1 on one device
     vs the first device's share. The results are NOT bitwise identical: XLA compiles the sharded
     program differently and last-ulp differences (measured ~2.5e-9 relative after 6 updates)
-    grow through training. So agreement is asserted at 1e-6 relative, far below any difference
+    grow through training (to ~1e-5 in the gradient norm). Agreement is asserted at 1e-4 relative,
+    far below any difference
     between seeds (~1e-1).
     """
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
@@ -169,5 +170,5 @@ def test_two_host_devices_equal_one(tmp_path):
         assert f"TFRT_CPU_{n - 1}" in (out / "config.json").read_text()
     one, two, one_all = outs
     for k in ("mean_reward", "exploration_std", "grad_norm", "num_basis_vectors"):
-        np.testing.assert_allclose(one[k], two[k][:, :2], rtol=1e-6, atol=1e-9)
-        np.testing.assert_allclose(one_all[k], two[k], rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(one[k], two[k][:, :2], rtol=1e-4, atol=1e-9)
+        np.testing.assert_allclose(one_all[k], two[k], rtol=1e-4, atol=1e-9)
