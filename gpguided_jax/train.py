@@ -124,6 +124,8 @@ def make_train(config: TrainConfig):
         `kernel` is given, or for REINFORCE) and initial state.
       - `train.run_chunk(state, cfg=config, num_updates=...) -> (TrainState, UpdateRecord)`.
       - `train.fit_kernel_for_seed(key, cfg=config) -> KernelParams`, `train.collect(...)`.
+      - `train.episodes(key, state, cfg=config, num_episodes=3) -> Episode`: roll out the
+        method's policy at a given state (visited states for figures, evaluation).
     """
     validate(config)
     static = config
@@ -260,6 +262,13 @@ def make_train(config: TrainConfig):
     def train(key, cfg=config):
         return run_chunk(init(key, cfg), cfg, static.num_updates)
 
+    def episodes(key, state: TrainState, cfg=config, num_episodes: int = 3) -> Episode:
+        """Episodes of the method's policy at `state` (theta and GP held fixed): fields gain a
+        leading (num_episodes,) axis. For figures of visited states and for evaluation."""
+        ctx = _context(cfg, state.gp, state.kernel)
+        keys = jax.random.split(key, num_episodes)
+        return jax.vmap(lambda k: rollout(k, state.theta, ctx, policy, cfg))(keys)
+
     def fit_kernel_for_seed(key, cfg=config):
         """The kernel `init(key, cfg)` would fit (shared by every GP method of a seed)."""
         return fit_kernel(jax.random.split(key)[0], cfg)
@@ -269,6 +278,7 @@ def make_train(config: TrainConfig):
     train.fit_kernel = fit_kernel
     train.fit_kernel_for_seed = fit_kernel_for_seed
     train.collect = collect
+    train.episodes = episodes
     train.controller = controller
     train.policy = policy
     train.config = config
