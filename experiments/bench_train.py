@@ -79,7 +79,7 @@ def main(argv=None):
     ap.add_argument("--preset", default="paper")
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--methods", nargs="+", default=list(C.METHODS))
-    ap.add_argument("--numpy-updates", type=int, default=4)
+    ap.add_argument("--numpy-updates", type=int, default=20)
     args = ap.parse_args(argv)
 
     out = {"benchmark": "train", "preset": args.preset, "seeds": args.seeds,
