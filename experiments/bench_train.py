@@ -45,7 +45,7 @@ def numpy_gp_pg_updates(cfg, kernel, num_updates, rng):
     for t in range(num_updates):
         scores, feats = [], []
         for _ in range(cfg.episodes_per_update):
-            s = np.array([float(p.start_mean[0]), float(p.start_mean[1])]) + np.asarray(p.start_std) * rng.normal(size=2)
+            s = np.asarray(p.start_mean, float) + np.asarray(p.start_std, float) * rng.normal(size=2)
             s[0] %= 2 * math.pi
             rewards = []
             for _ in range(cfg.episode_length):
@@ -58,13 +58,18 @@ def numpy_gp_pg_updates(cfg, kernel, num_updates, rng):
                 scores.append(np.append((a - c) / sigma**2 * dc, (a - c) ** 2 / sigma**2 - 1.0))
                 feats.append(np.array([psi[0], psi[1], s[1], a]))
                 u = min(max(a, -umax), umax)
-                k1 = f(s, u); k2 = f(s + 0.5 * dt * k1, u); k3 = f(s + 0.5 * dt * k2, u); k4 = f(s + dt * k3, u)
+                k1 = f(s, u)
+                k2 = f(s + 0.5 * dt * k1, u)
+                k3 = f(s + 0.5 * dt * k2, u)
+                k4 = f(s + dt * k3, u)
                 s = s + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
                 s[0] %= 2 * math.pi
                 rewards.append(-(s[0] - math.pi) ** 2 - (s[1] / 4) ** 2 + noise * rng.normal())
-            ret = np.zeros(len(rewards)); acc = 0.0
+            ret = np.zeros(len(rewards))
+            acc = 0.0
             for i in reversed(range(len(rewards))):
-                acc = rewards[i] + gamma * acc; ret[i] = acc
+                acc = rewards[i] + gamma * acc
+                ret[i] = acc
             for x, y in zip(feats[-cfg.episode_length:], ret):
                 gp.update(x, y, t)
         q = np.array([gp.predict(x)[0] for x in feats])
@@ -97,9 +102,13 @@ def main(argv=None):
             out["hyperfit_s"] = round(time.perf_counter() - t0, 3)
             total_wall += out["hyperfit_s"]
         kern = kernel_batch if cfg.uses_gp else None
-        init = jax.jit(jax.vmap(lambda k, kk: train.init(k, cfg, kk))) if kern is not None else jax.jit(jax.vmap(train.init))
-        args_init = (keys, kern) if kern is not None else (keys,)
-        run = jax.jit(jax.vmap(lambda s: train.run_chunk(s, cfg, cfg.num_updates)))
+        if kern is not None:
+            init = jax.jit(jax.vmap(lambda k, kk, train=train, cfg=cfg: train.init(k, cfg, kk)))
+            args_init = (keys, kern)
+        else:
+            init = jax.jit(jax.vmap(train.init))
+            args_init = (keys,)
+        run = jax.jit(jax.vmap(lambda s, train=train, cfg=cfg: train.run_chunk(s, cfg, cfg.num_updates)))
         state = jax.block_until_ready(init(*args_init))
         t0 = time.perf_counter()
         compiled = run.lower(state).compile()

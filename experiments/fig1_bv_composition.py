@@ -18,7 +18,7 @@ Protocol (the paper gives no details beyond the figure; these choices are ours):
   after the data of improvement k has been taken in, the share of BVs whose timestamp is k.
 
 Outputs (under --out, default results/fig1): fig1_bv_composition.png and fig1_bv_composition.csv
-(columns: improvement, then one column per lambda, in percent).
+(columns: improvement, then one column per lambda, in percent, mean over --seeds runs).
 """
 
 from __future__ import annotations
@@ -97,13 +97,15 @@ def make_run(params, hyper, *, capacity, num_improvements, num_episodes, num_ste
         _, shares = jax.lax.scan(body, state, (jnp.arange(xs.shape[0]), xs, ys))
         return shares
 
-    return data_for, jax.jit(jax.vmap(gp_run, in_axes=(None, None, 0)))
+    over_lambdas = jax.vmap(gp_run, in_axes=(None, None, 0))
+    return jax.jit(jax.vmap(data_for)), jax.jit(jax.vmap(over_lambdas, in_axes=(0, 0, None)))
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description="Reproduce the paper's Fig. 1")
     parser.add_argument("--out", default="results/fig1")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="base seed")
+    parser.add_argument("--seeds", type=int, default=10, help="independent runs averaged")
     parser.add_argument("--improvements", type=int, default=60)
     parser.add_argument("--capacity", type=int, default=20)
     parser.add_argument("--age-scale", type=float, default=1.0)
@@ -113,11 +115,11 @@ def main(argv=None):
     params = pendulum.make_params()
     key = jax.random.PRNGKey(args.seed)
     k_theta, k_fit, k_data = jax.random.split(key, 3)
-    theta0 = 0.5 * jax.random.normal(k_theta, (4,))
+    theta0 = 0.5 * jax.random.normal(k_theta, (args.seeds, 4))
     sigma, discount = 1.0, 0.95
 
     fit_x, fit_y = jax.jit(collect, static_argnums=(3, 4))(
-        k_fit, theta0, params, 12, 50, sigma, discount
+        k_fit, theta0[0], params, 12, 50, sigma, discount
     )
     fit = jax.jit(hyperfit.fit, static_argnames="num_steps")(fit_x, fit_y, num_steps=150)
     hyper = fit.params
@@ -128,8 +130,10 @@ def main(argv=None):
         num_episodes=3, num_steps=50, sigma=sigma, discount=discount, walk_std=0.1,
         novelty_tol=1e-4, age_scale=args.age_scale, age_fn=args.age_fn,
     )
-    xs, ys = jax.jit(data_for)(k_data, theta0)
-    shares = 100.0 * np.asarray(gp_runs(xs, ys, jnp.asarray(LAMBDAS)))  # (L, K)
+    xs, ys = data_for(jax.random.split(k_data, args.seeds), theta0)
+    per_seed = 100.0 * np.asarray(gp_runs(xs, ys, jnp.asarray(LAMBDAS)))  # (S, L, K)
+    shares = per_seed.mean(0)  # (L, K)
+    stderr = per_seed.std(0, ddof=1) / np.sqrt(args.seeds) if args.seeds > 1 else 0 * shares
 
     os.makedirs(args.out, exist_ok=True)
     csv_path = os.path.join(args.out, "fig1_bv_composition.csv")
@@ -139,12 +143,15 @@ def main(argv=None):
         for k in range(shares.shape[1]):
             writer.writerow([k + 1] + [f"{s:.2f}" for s in shares[:, k]])
     fig, ax = plt.subplots(figsize=(6, 4))
-    for lam, row in zip(LAMBDAS, shares, strict=True):
-        ax.plot(np.arange(1, shares.shape[1] + 1), row, label=f"λ={lam:g}")
+    x = np.arange(1, shares.shape[1] + 1)
+    for lam, row, se in zip(LAMBDAS, shares, stderr, strict=True):
+        ax.plot(x, row, label=f"λ={lam:g}")
+        ax.fill_between(x, row - se, row + se, alpha=0.2)
     ax.set_xlabel("Number of policy improvements")
     ax.set_ylabel("percentage of new basis functions")
     ax.set_ylim(0, 100)
-    ax.set_title(f"BV-set composition (M={args.capacity}, g={args.age_fn}, c={args.age_scale:g})")
+    ax.set_title(f"BV-set composition (M={args.capacity}, g={args.age_fn}, c={args.age_scale:g}; "
+                 f"mean ± s.e. over {args.seeds} runs)", fontsize=9)
     ax.legend()
     fig.tight_layout()
     png_path = os.path.join(args.out, "fig1_bv_composition.png")

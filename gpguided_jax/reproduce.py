@@ -246,7 +246,8 @@ def plot_fig5(results: dict[str, np.ndarray], out_dir: str) -> list[str]:
         ax.set_ylabel(ylabel)
         ax.legend()
         ax.grid(alpha=0.3)
-        ax.set_title(f"{'(a)' if field == 'mean_reward' else '(b)'} mean and 95% CI over {data.shape[1]} seeds")
+        panel = "(a)" if field == "mean_reward" else "(b)"
+        ax.set_title(f"{panel} mean and 95% CI over {data.shape[1]} seeds")
         fig.tight_layout()
         path = os.path.join(out_dir, name)
         fig.savefig(path, dpi=120)
@@ -291,7 +292,8 @@ def reproduce(
         if os.path.exists(kpath):
             with np.load(kpath) as f:
                 if list(f["seeds"]) == list(seeds):
-                    kernels = train_lib.kernels.KernelParams(*(f[k] for k in train_lib.kernels.KernelParams._fields))
+                    fields = train_lib.kernels.KernelParams._fields
+                    kernels = train_lib.kernels.KernelParams(*(f[k] for k in fields))
         if kernels is None:
             t0 = time.perf_counter()
             n_dev = mesh.devices.size
