@@ -212,9 +212,9 @@ def gp_latent_variance_and_grad(gp, kernel, state, action):
 
 
 def gp_mean(gp, kernel, state, action):
-    """Q_GP(s, a) = k(x)^T alpha, the GP predictive mean (eq. 5)."""
+    """Q_GP(s, a) = m0 + k(x)^T alpha, the GP predictive mean (eq. 5; m0 the prior mean)."""
     x = kernels.state_action_features(state, action)
-    return sparse_gp.masked_kernel_vector(gp, x, kernel) @ gp.alpha
+    return gp.prior_mean + sparse_gp.masked_kernel_vector(gp, x, kernel) @ gp.alpha
 
 
 def _floored(value, floor):

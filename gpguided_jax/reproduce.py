@@ -4,7 +4,7 @@ summary, table and plots. The `gpguided reproduce` command is a thin wrapper ove
 Output directory layout:
   config.json            resolved config of every method (+ seeds, chunk size, devices)
   checkpoint_<method>.npz  state after the last finished chunk and the records so far
-  kernels.npz            fitted GP hyperparameters per seed (shared by the GP methods)
+  kernels.npz            fitted GP hyperparameters and prior mean per seed (shared by the GP methods)
   results.npz            methods (names), seeds, and per-update records of shape (methods, seeds, updates)
   summary.csv            final performance (mean, 95% CI over seeds) and updates to 90%
   fig5_reward.png, fig5_exploration.png
@@ -29,6 +29,7 @@ from gpguided_jax import config as config_lib
 from gpguided_jax import train as train_lib
 
 RECORD_FIELDS = train_lib.UpdateRecord._fields
+CHECKPOINT_VERSION = 2  # bump when the state's pytree changes; older checkpoints are ignored
 
 
 def _log(msg: str) -> None:
@@ -55,7 +56,8 @@ def _shard(tree, mesh: Mesh):
 
 
 def _config_hash(cfg: config_lib.TrainConfig, seeds, chunk_size) -> str:
-    blob = json.dumps([cfg.to_json_dict(), list(map(int, seeds)), chunk_size], sort_keys=True)
+    blob = json.dumps([CHECKPOINT_VERSION, cfg.to_json_dict(), list(map(int, seeds)), chunk_size],
+                      sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -102,7 +104,7 @@ def run_method(
       out_dir: where the checkpoint goes.
       chunk_size: updates per compiled chunk (progress is reported and a checkpoint written after each).
       mesh: device mesh with axis 'seeds' (default: all devices).
-      kernels: optional fitted `KernelParams` with a leading seed axis (skips the hyperfit).
+      kernels: optional fitted `train.GPPrior` with a leading seed axis (skips the hyperfit).
       max_chunks: stop after this many chunks in this call (to test resumption); None: run to the end.
 
     Returns:
@@ -291,16 +293,18 @@ def reproduce(
         fit = jax.jit(jax.vmap(train_lib.make_train(cfg0).fit_kernel_for_seed))
         if os.path.exists(kpath):
             with np.load(kpath) as f:
-                if list(f["seeds"]) == list(seeds):
+                if list(f["seeds"]) == list(seeds) and "prior_mean" in f.files:
                     fields = train_lib.kernels.KernelParams._fields
-                    kernels = train_lib.kernels.KernelParams(*(f[k] for k in fields))
+                    kernels = train_lib.GPPrior(
+                        train_lib.kernels.KernelParams(*(f[k] for k in fields)), f["prior_mean"])
         if kernels is None:
             t0 = time.perf_counter()
             n_dev = mesh.devices.size
             padded = list(seeds) + [seeds[-1] + 1 + i for i in range((-len(seeds)) % n_dev)]
             fitted = fit(_shard(seed_keys(padded), mesh))
             kernels = jax.tree_util.tree_map(lambda x: np.asarray(x)[: len(seeds)], jax.device_get(fitted))
-            np.savez(kpath, seeds=np.asarray(seeds), **kernels._asdict())
+            np.savez(kpath, seeds=np.asarray(seeds), prior_mean=kernels.mean,
+                     **kernels.kernel._asdict())
             progress(f"hyperparameter fit for {len(seeds)} seeds: {time.perf_counter() - t0:.1f}s")
 
     results = {k: [] for k in RECORD_FIELDS}

@@ -33,6 +33,9 @@ class SparseGPState(NamedTuple):
       Q: (S, S) inverse Gram matrix K_B^{-1} of the active basis vectors.
       timestamps: (S,) int32 index of the policy update during which each BV was added.
       mask: (S,) bool, True for active slots.
+      prior_mean: () constant prior mean m0 of the GP: mu(x) = m0 + k(B, x)^T alpha. Returns
+        here are all negative; with a zero prior mean the GP would revert to 0 (an optimistic
+        value) away from the data, which biases a Q-based gradient towards unexplored actions.
     """
 
     basis_vectors: jax.Array
@@ -41,10 +44,11 @@ class SparseGPState(NamedTuple):
     Q: jax.Array
     timestamps: jax.Array
     mask: jax.Array
+    prior_mean: jax.Array = 0.0
 
 
-def init(capacity: int, input_dim: int, dtype=None) -> SparseGPState:
-    """An empty GP with room for `capacity` basis vectors (static)."""
+def init(capacity: int, input_dim: int, dtype=None, prior_mean=0.0) -> SparseGPState:
+    """An empty GP with room for `capacity` basis vectors (static) and a constant prior mean."""
     dtype = dtype or jnp.result_type(float)
     slots = capacity + 1
     return SparseGPState(
@@ -54,6 +58,7 @@ def init(capacity: int, input_dim: int, dtype=None) -> SparseGPState:
         Q=jnp.zeros((slots, slots), dtype),
         timestamps=jnp.zeros((slots,), jnp.int32),
         mask=jnp.zeros((slots,), bool),
+        prior_mean=jnp.asarray(prior_mean, dtype),
     )
 
 
@@ -71,7 +76,7 @@ def predict(state: SparseGPState, x: jax.Array, hyper: kernels.KernelParams):
     """
     k = masked_kernel_vector(state, x, hyper)
     kxx = kernels.kernel_diag(x, hyper)
-    mean = k @ state.alpha
+    mean = state.prior_mean + k @ state.alpha
     var = kxx + k @ (state.C @ k)
     return mean, jnp.clip(var, 0.0, kxx)
 
@@ -236,7 +241,7 @@ def update(
     # (alpha is still updated). Exact arithmetic never takes this branch.
     psd_ok = v_raw >= gamma
     denom = hyper.noise_variance + v
-    q = (y - k @ alpha) / denom
+    q = (y - state.prior_mean - k @ alpha) / denom
     r = -1.0 / denom
 
     add = ok & (gamma >= novelty_tol * kxx)
@@ -313,6 +318,7 @@ def update(
         Q=Q2,
         timestamps=timestamps1,
         mask=keep,
+        prior_mean=state.prior_mean,
     )
 
 

@@ -55,6 +55,18 @@ class TrainState(NamedTuple):
     update_index: jax.Array
 
 
+class GPPrior(NamedTuple):
+    """What the GP methods of one seed share, fitted before learning (paper §VI).
+
+    Attributes:
+      kernel: fitted `KernelParams`.
+      mean: () constant prior mean of Q_GP: the mean return-to-go of the initial policy's data.
+    """
+
+    kernel: kernels.KernelParams
+    mean: jax.Array
+
+
 class UpdateRecord(NamedTuple):
     """Per-update records (each () per update; stacked to (num_updates,) by the scan).
 
@@ -65,6 +77,8 @@ class UpdateRecord(NamedTuple):
       num_basis_vectors: active BVs after the update's GP updates.
       fresh_bv_share: share of BVs stamped with this update (Fig. 1).
       nonfinite_grad: 1 if the gradient estimate was not finite (the step is then skipped).
+      gp_resets: episodes of this update whose GP update produced a non-finite state and was
+        therefore not taken in (the GP kept its state from before the episode).
     """
 
     mean_reward: jax.Array
@@ -73,6 +87,7 @@ class UpdateRecord(NamedTuple):
     num_basis_vectors: jax.Array
     fresh_bv_share: jax.Array
     nonfinite_grad: jax.Array
+    gp_resets: jax.Array
 
 
 class Episode(NamedTuple):
@@ -120,10 +135,10 @@ def make_train(config: TrainConfig):
     leading (num_updates,) axis); `cfg` may differ from `config` in traced fields only, so
     `jax.jit(jax.vmap(train))(keys)` runs seeds and `jax.vmap(train)(keys, stacked_cfgs)` sweeps.
     The pieces hang on it as attributes:
-      - `train.init(key, cfg=config, kernel=None) -> TrainState`: hyperparameter fit (skipped when a
-        `kernel` is given, or for REINFORCE) and initial state.
+      - `train.init(key, cfg=config, prior=None) -> TrainState`: hyperparameter fit (skipped when a
+        `GPPrior` is given, or for REINFORCE) and initial state.
       - `train.run_chunk(state, cfg=config, num_updates=...) -> (TrainState, UpdateRecord)`.
-      - `train.fit_kernel_for_seed(key, cfg=config) -> KernelParams`, `train.collect(...)`.
+      - `train.fit_kernel_for_seed(key, cfg=config) -> GPPrior`, `train.collect(...)`.
       - `train.episodes(key, state, cfg=config, num_episodes=3) -> Episode`: roll out the
         method's policy at a given state (visited states for figures, evaluation).
     """
@@ -174,27 +189,29 @@ def make_train(config: TrainConfig):
         xs = jax.vmap(_features)(eps.states, eps.actions).reshape(-1, 4)
         return xs, returns.reshape(-1)
 
-    def fit_kernel(key, cfg=config):
+    def fit_prior(key, cfg=config) -> GPPrior:
         key_data, key_subset = jax.random.split(key)
         xs, ys = collect(key_data, cfg)
+        mean = jnp.mean(ys)  # the prior mean of Q_GP; the kernel is fitted to centred returns
         n = min(static.hyperfit_subset, xs.shape[0])
         if n < xs.shape[0]:
             idx = jax.random.choice(key_subset, xs.shape[0], (n,), replace=False)
             xs, ys = xs[idx], ys[idx]
-        return hyperfit.fit(xs, ys, num_steps=static.hyperfit_steps).params
+        kernel = hyperfit.fit(xs, ys - mean, num_steps=static.hyperfit_steps).params
+        return GPPrior(kernel, mean)
 
-    def init(key, cfg=config, kernel=None):
+    def init(key, cfg=config, prior: GPPrior | None = None):
         _check(cfg)
         key_fit, key_run = jax.random.split(key)
-        if kernel is None:
+        if prior is None:
             if static.uses_gp:
-                kernel = fit_kernel(key_fit, cfg)
-            else:
-                kernel = kernels.make_kernel_params(jnp.ones(4))  # unused by REINFORCE
+                prior = fit_prior(key_fit, cfg)
+            else:  # unused by REINFORCE
+                prior = GPPrior(kernels.make_kernel_params(jnp.ones(4)), jnp.zeros(()))
         theta = initial_theta(cfg)
         opt_state = make_optimizer(cfg).init(theta)
-        gp = sparse_gp.init(static.gp_capacity, 4)
-        return TrainState(theta, opt_state, gp, kernel, key_run, jnp.zeros((), jnp.int32))
+        gp = sparse_gp.init(static.gp_capacity, 4, prior_mean=prior.mean)
+        return TrainState(theta, opt_state, gp, prior.kernel, key_run, jnp.zeros((), jnp.int32))
 
     def one_update(cfg, state: TrainState, _):
         key, key_eps = jax.random.split(state.key)
@@ -203,8 +220,9 @@ def make_train(config: TrainConfig):
         def episode(gp, key_e):
             ep = rollout(key_e, state.theta, _context(cfg, gp, state.kernel), policy, cfg)
             returns = estimators.discounted_returns(ep.rewards, cfg.discount)
+            reset = jnp.zeros((), jnp.int32)
             if static.uses_gp:
-                gp = sparse_gp.update_batch(
+                new_gp = sparse_gp.update_batch(
                     gp,
                     _features(ep.states, ep.actions),
                     returns,
@@ -215,9 +233,13 @@ def make_train(config: TrainConfig):
                     age_scale=cfg.age_scale,
                     age_fn=static.age_fn,
                 )
-            return gp, (ep, returns)
+                # Last line of defence: never let a diverged GP state into the policy.
+                healthy = jnp.all(jnp.isfinite(new_gp.alpha)) & jnp.all(jnp.isfinite(new_gp.C))
+                gp = jax.tree_util.tree_map(lambda n, o: jnp.where(healthy, n, o), new_gp, gp)
+                reset = (~healthy).astype(jnp.int32)
+            return gp, (ep, returns, reset)
 
-        gp, (eps, returns) = jax.lax.scan(episode, state.gp, jax.random.split(key_eps, E))
+        gp, (eps, returns, resets) = jax.lax.scan(episode, state.gp, jax.random.split(key_eps, E))
 
         if static.uses_gp:
             feats = jax.vmap(_features)(eps.states, eps.actions)
@@ -251,6 +273,7 @@ def make_train(config: TrainConfig):
             num_basis_vectors=n_bv,
             fresh_bv_share=jnp.where(n_bv > 0, fresh / jnp.maximum(n_bv, 1), 0.0),
             nonfinite_grad=(~finite).astype(jnp.int32),
+            gp_resets=jnp.sum(resets),
         )
         new_state = TrainState(theta, opt_state, gp, state.kernel, key, t + 1)
         return new_state, record
@@ -269,13 +292,14 @@ def make_train(config: TrainConfig):
         keys = jax.random.split(key, num_episodes)
         return jax.vmap(lambda k: rollout(k, state.theta, ctx, policy, cfg))(keys)
 
-    def fit_kernel_for_seed(key, cfg=config):
-        """The kernel `init(key, cfg)` would fit (shared by every GP method of a seed)."""
-        return fit_kernel(jax.random.split(key)[0], cfg)
+    def fit_kernel_for_seed(key, cfg=config) -> GPPrior:
+        """The `GPPrior` (kernel and prior mean) that `init(key, cfg)` would fit; it depends only on
+        the seed and the initial policy, so every GP method of a seed can share it."""
+        return fit_prior(jax.random.split(key)[0], cfg)
 
     train.init = init
     train.run_chunk = run_chunk
-    train.fit_kernel = fit_kernel
+    train.fit_prior = fit_prior
     train.fit_kernel_for_seed = fit_kernel_for_seed
     train.collect = collect
     train.episodes = episodes

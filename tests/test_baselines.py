@@ -1,0 +1,148 @@
+"""Baselines: brax PPO on the pendulum, the swing-up success criterion, the comparison script."""
+
+import importlib.util
+import math
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gpguided_jax import baselines, pendulum
+
+DT = 0.005
+T = 400  # a 2 s episode of the swing-up preset
+HOLD = 200  # its last second
+
+
+def _trajectory(phi):
+    phi = np.asarray(phi, float)
+    omega = np.gradient(phi, DT)
+    return jnp.asarray(np.stack([pendulum.wrap_angle(phi), omega], axis=-1))
+
+
+def _swing_up_and_hold():
+    t = np.arange(T)
+    phi = np.where(t < 150, math.pi * t / 150, math.pi + 0.2 * np.sin(t / 10.0))
+    return _trajectory(phi)
+
+
+def _reach_then_fall():
+    t = np.arange(T)
+    phi = np.clip(math.pi * t / 150, 0, math.pi)  # upright from step 150 ...
+    phi = np.where(t >= 300, math.pi + 0.02 * np.maximum(t - 299, 0) ** 1.5, phi)  # ... falls from step 300
+    return _trajectory(phi)
+
+
+def _spin_through_upright():
+    return _trajectory(2 * math.pi * 3 * np.arange(T) / T)  # three full turns
+
+
+def test_success_against_hand_made_trajectories():
+    assert bool(baselines.swingup_success(_swing_up_and_hold(), DT))
+    assert not bool(baselines.swingup_success(_reach_then_fall(), DT))
+    assert not bool(baselines.swingup_success(_spin_through_upright(), DT))
+    # upright on the other side of pi (phi slightly above pi, wrapped) also counts
+    assert bool(baselines.swingup_success(_trajectory(np.full(T, math.pi + 0.25)), DT))
+    # one step out of tolerance within the last second fails; before it does not matter
+    for step, expected in [(T - HOLD, False), (T - HOLD - 1, True), (T - 1, False)]:
+        phi = np.full(T, math.pi)
+        phi[step] = math.pi - 0.31
+        assert bool(baselines.swingup_success(_trajectory(phi), DT)) == expected, step
+
+
+def test_success_jit_vmap_and_hold_time():
+    batch = jnp.stack([_swing_up_and_hold(), _reach_then_fall(), _spin_through_upright()])
+    flags = jax.jit(jax.vmap(lambda s: baselines.swingup_success(s, DT)))(batch)
+    np.testing.assert_array_equal(flags, [True, False, False])
+    # upright from 1.25 s before the end: (within 0.3 rad from step 136) a 1.2 s hold
+    # is met, a 1.4 s hold is not
+    assert bool(baselines.swingup_success(_swing_up_and_hold(), DT, hold_time=1.2))
+    assert not bool(baselines.swingup_success(_swing_up_and_hold(), DT, hold_time=1.4))
+    with pytest.raises(ValueError, match="shorter than the hold time"):
+        baselines.swingup_success(batch[0, :100], DT)
+
+
+def test_policy_success_rate_of_a_pendulum_at_rest_upright():
+    params = pendulum.make_params(start_mean=(math.pi, 0.0), start_std=(0.0, 0.0))
+    rate = baselines.policy_success_rate(jax.random.PRNGKey(0), params, lambda k, s: 0.0, 400, 4)
+    assert rate == 1.0  # an unperturbed upright pendulum stays (reward noise does not act on it)
+    params = pendulum.make_params(start_mean=(0.0, 0.0), start_std=(0.1, 0.1))
+    assert baselines.policy_success_rate(jax.random.PRNGKey(0), params, lambda k, s: 0.0, 400, 4) == 0
+
+
+def test_matched_budget_value():
+    x = np.array([100, 200, 300, 400])
+    y = np.array([[1.0, 2.0, 3.0, 4.0], [3.0, 4.0, 5.0, 6.0]])
+    np.testing.assert_allclose(baselines.matched_budget_value(x, y, 400, window=0.5), [3.5, 5.5])
+    np.testing.assert_allclose(baselines.matched_budget_value(x, y, 310), [3.0, 5.0])
+    assert np.all(np.isnan(baselines.matched_budget_value(x, y, 350)))  # no point in (315, 350]
+    assert np.all(np.isnan(baselines.matched_budget_value(x, y, 1000)))
+
+
+def test_train_ppo_tiny_budget_returns_finite_curve():
+    params = pendulum.make_params(start_mean=(math.pi - 0.5, 0.0), start_std=(0.1, 0.1))
+    per_iter = baselines.ppo_steps_per_iteration(4, 10, 4, 2)
+    result = baselines.train_ppo(
+        params,
+        2 * per_iter,
+        20,
+        seed=0,
+        num_evals=3,
+        num_envs=4,
+        unroll_length=10,
+        batch_size=4,
+        num_minibatches=2,
+        num_updates_per_batch=1,
+        num_eval_envs=4,
+        hidden_layers=(8,),
+    )
+    np.testing.assert_array_equal(result.env_steps, [0, per_iter, 2 * per_iter])
+    assert result.reward_per_step.shape == (3,)
+    assert np.all(np.isfinite(result.reward_per_step)) and np.all(result.reward_per_step < 0.5)
+    assert result.wall_time > 0
+    rate = baselines.ppo_success_rate(
+        jax.random.PRNGKey(1), result, params, 20, 3, deterministic=True, hold_time=0.02
+    )
+    assert 0.0 <= rate <= 1.0
+    assert jax.config.jax_enable_x64  # train_ppo leaves the package's float64 setting as it was
+
+
+def test_compare_ppo_end_to_end(tmp_path):
+    path = pathlib.Path(__file__).parent.parent / "experiments" / "compare_ppo.py"
+    spec = importlib.util.spec_from_file_location("compare_ppo", path)
+    compare = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(compare)
+    # one seed: every PPO run compiles its own program (~20 s on a 2-core CPU)
+    out = compare.main(
+        [
+            "--preset",
+            "tiny",
+            "--seeds",
+            "0",
+            "--num-updates",
+            "2",
+            "--ppo-multipliers",
+            "1",
+            "--eval-episodes",
+            "2",
+            "--hold-time",
+            "0.04",
+            "--out",
+            str(tmp_path),
+        ]
+    )
+    assert pathlib.Path(out["figure"]).stat().st_size > 0
+    md = pathlib.Path(out["markdown"]).read_text()
+    for name in ("reinforce", "gp_pg", "guided_variance", "guided_direction", "PPO", "success"):
+        assert name in md, name
+    labels = [r["method"] for r in out["rows"]]
+    assert len(labels) == 5
+    assert (tmp_path / "success_tiny.csv").exists()
+    with np.load(tmp_path / "ppo_tiny.npz") as f:
+        budget = int(f["budgets"][0])
+        assert budget == 2 * 2 * 20  # num_updates x episodes_per_update x episode_length
+        assert f[f"curves_{budget}"].shape == (1, 2) and np.all(np.isfinite(f[f"curves_{budget}"]))
+    for r in out["rows"]:
+        assert np.isfinite(r["wall_s"]) and r["wall_s"] > 0
