@@ -263,6 +263,9 @@ def make_train(config: TrainConfig):
             make_optimizer(cfg), state.theta, state.opt_state, safe_grad
         )
         theta = jax.tree_util.tree_map(lambda new, old: jnp.where(finite, new, old), theta, state.theta)
+        theta = theta._replace(
+            log_std=jnp.clip(theta.log_std, jnp.log(cfg.min_std), jnp.log(cfg.max_std))
+        )
 
         n_bv = sparse_gp.num_basis_vectors(gp)
         fresh = jnp.sum(gp.mask & (gp.timestamps == t))

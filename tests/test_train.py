@@ -172,3 +172,14 @@ def test_two_host_devices_equal_one(tmp_path):
     for k in ("mean_reward", "exploration_std", "grad_norm", "num_basis_vectors"):
         np.testing.assert_allclose(one[k], two[k][:, :2], rtol=1e-4, atol=1e-9)
         np.testing.assert_allclose(one_all[k], two[k], rtol=1e-4, atol=1e-9)
+
+
+def test_learnable_sigma_is_clipped_to_its_bounds():
+    cfg = C.preset("tiny", method="reinforce", learning_rate=1.0, min_std=0.7, max_std=0.8)
+    state, rec = jax.jit(T.make_train(cfg))(jax.random.PRNGKey(5))
+    std = np.exp(np.asarray(state.theta.log_std))
+    assert 0.7 - 1e-12 <= std <= 0.8 + 1e-12
+    # the first update's episodes use the initial sigma (1.5); every later one a clipped sigma
+    assert np.all(np.asarray(rec.exploration_std)[1:] <= 0.8 + 1e-12)
+    with pytest.raises(ValueError, match="min_std"):
+        C.preset("tiny", min_std=2.0, max_std=1.0)
