@@ -1,0 +1,79 @@
+"""Executes every notebook in notebooks/ at reduced size, so that a broken notebook fails CI.
+
+The notebooks are jupytext percent-format `.py` files. Each is converted to a notebook in memory
+and run top to bottom by nbclient in a fresh kernel with GPGUIDED_NOTEBOOK_QUICK=1 (the notebooks'
+size knob) and the Agg matplotlib backend; any cell that raises fails the test.
+
+The kernel is the Python running pytest: a kernelspec pointing at `sys.executable` is written to a
+temporary directory and looked up there, so no `ipykernel install` is needed on a fresh machine.
+
+At the reduced size the notebooks spend most of their time compiling, so the kernel runs XLA's CPU
+backend at optimisation level 0 (compiles about 2-3x faster; the tiny runs do not notice the slower
+code). This is for the test only: the notebooks themselves run with JAX's defaults.
+"""
+
+import json
+import os
+import pathlib
+import sys
+
+import pytest
+
+jupytext = pytest.importorskip("jupytext")
+nbclient = pytest.importorskip("nbclient")
+pytest.importorskip("ipykernel")
+from jupyter_client.kernelspec import KernelSpecManager  # noqa: E402
+from jupyter_client.manager import KernelManager  # noqa: E402
+
+NOTEBOOK_DIR = pathlib.Path(__file__).resolve().parent.parent / "notebooks"
+NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("[0-9][0-9]_*.py"))
+KERNEL_NAME = "gpguided-notebook-test"
+CELL_TIMEOUT_S = 300  # generous: the tests may run in parallel on a loaded 2-core machine
+FAST_COMPILE_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
+
+
+@pytest.fixture(scope="module")
+def kernel_spec_manager(tmp_path_factory):
+    kernels_dir = tmp_path_factory.mktemp("jupyter") / "kernels"
+    spec_dir = kernels_dir / KERNEL_NAME
+    spec_dir.mkdir(parents=True)
+    spec = {
+        "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
+        "display_name": "gpguided_jax notebook test",
+        "language": "python",
+        "env": {
+            "GPGUIDED_NOTEBOOK_QUICK": "1",
+            "MPLBACKEND": "Agg",
+            "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} {FAST_COMPILE_XLA_FLAGS}".strip(),
+        },
+    }
+    (spec_dir / "kernel.json").write_text(json.dumps(spec))
+    return KernelSpecManager(kernel_dirs=[str(kernels_dir)])
+
+
+def test_notebooks_exist():
+    names = [p.name for p in NOTEBOOKS]
+    assert names == [
+        "01_pendulum_and_gp.py",
+        "02_exploration_schemes.py",
+        "03_autodiff_verification.py",
+        "04_sweeps.py",
+    ]
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+def test_notebook_executes(path, kernel_spec_manager):
+    nb = jupytext.read(path, fmt="py:percent")
+    assert sum(c.cell_type == "code" for c in nb.cells) >= 3, "not a percent-format notebook?"
+    first_code = next(c.source for c in nb.cells if c.cell_type == "code")
+    assert 'QUICK = os.environ.get("GPGUIDED_NOTEBOOK_QUICK") == "1"' in first_code
+    km = KernelManager(kernel_name=KERNEL_NAME, kernel_spec_manager=kernel_spec_manager)
+    client = nbclient.NotebookClient(
+        nb,
+        km=km,
+        timeout=CELL_TIMEOUT_S,
+        resources={"metadata": {"path": str(NOTEBOOK_DIR)}},
+    )
+    client.execute()  # raises CellExecutionError, naming the cell, on any error
+    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+    assert not any(o.get("output_type") == "error" for o in outputs)
