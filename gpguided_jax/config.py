@@ -155,8 +155,9 @@ jax.tree_util.register_dataclass(
     TrainConfig, data_fields=list(TRACED_FIELDS), meta_fields=list(STATIC_FIELDS)
 )
 
-_POSITIVE = ("learning_rate", "min_std", "max_std", "age_scale", "guided_variance_scale", "guided_variance_floor",
-             "inverse_temperature", "energy_width", "candidate_scale", "candidate_floor")
+_POSITIVE = ("learning_rate", "min_std", "max_std", "age_scale", "guided_variance_scale",
+             "guided_variance_floor", "inverse_temperature", "energy_width", "candidate_scale",
+             "candidate_floor")
 _NON_NEGATIVE = ("age_penalty", "novelty_tol")
 
 
