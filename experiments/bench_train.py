@@ -26,8 +26,12 @@ from gpguided_jax import gp_reference
 from gpguided_jax import train as T
 
 
-def numpy_gp_pg_updates(cfg, kernel, num_updates, rng):
-    """Per-seed NumPy Algorithm 1 (method gp_pg, linear controller): returns wall seconds."""
+def numpy_gp_pg_updates(cfg, prior, num_updates, rng):
+    """Per-seed NumPy Algorithm 1 (method gp_pg, linear controller): returns wall seconds.
+
+    `prior` is the seed's `train.GPPrior`; the reference GP has a zero prior mean, so it is fed
+    centred returns and its predictions are shifted back, as the JAX GP does internally."""
+    kernel, m0 = prior.kernel, float(prior.mean)
     p = cfg.pendulum
     m, l, g, dt = float(p.mass), float(p.length), float(p.gravity), float(p.dt)
     b, umax, noise = float(p.friction), float(p.max_torque), float(p.reward_noise_std)
@@ -71,8 +75,8 @@ def numpy_gp_pg_updates(cfg, kernel, num_updates, rng):
                 acc = rewards[i] + gamma * acc
                 ret[i] = acc
             for x, y in zip(feats[-cfg.episode_length:], ret):
-                gp.update(x, y, t)
-        q = np.array([gp.predict(x)[0] for x in feats])
+                gp.update(x, y - m0, t)
+        q = m0 + np.array([gp.predict(x)[0] for x in feats])
         grad = (np.array(scores) * q[:, None]).sum(0) / cfg.episodes_per_update
         w = w + lr * grad[:4]
         log_std = log_std + lr * grad[4]

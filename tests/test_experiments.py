@@ -1,0 +1,29 @@
+"""Smoke tests of the benchmark scripts at tiny sizes, so that an API change cannot rot them."""
+
+import json
+import os
+import subprocess
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _run(args):
+    proc = subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout)
+
+
+def test_bench_train_tiny_prints_json_with_a_ratio():
+    out = _run(["experiments/bench_train.py", "--preset", "tiny", "--seeds", "2",
+                "--methods", "reinforce", "gp_pg", "--numpy-updates", "2"])
+    assert set(out["methods"]) == {"reinforce", "gp_pg"}
+    assert out["methods"]["gp_pg"]["run_s"] > 0
+    assert out["ratio_jax_over_numpy_gp_pg"] > 0
+
+
+def test_bench_env_prints_json():
+    out = _run(["experiments/bench_env.py", "--steps", "20", "--repeats", "2", "--batches", "1", "4"])
+    assert [r["episodes"] for r in out["results"]] == [1, 4]
+    assert all(r["steps_per_second"] > 0 for r in out["results"])
