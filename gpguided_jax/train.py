@@ -113,7 +113,8 @@ def _features(states, actions):
     return jax.vmap(kernels.state_action_features)(states, actions)
 
 
-def _context(cfg: TrainConfig, gp, kernel) -> policies.PolicyContext:
+def policy_context(cfg: TrainConfig, gp, kernel) -> policies.PolicyContext:
+    """The `PolicyContext` the training loop gives its policy for a GP state and kernel."""
     # lambda_v and the candidate scale are given in (N m)^2 where the GP is at its prior variance.
     sf2 = kernel.signal_variance
     return policies.make_context(
@@ -182,7 +183,7 @@ def make_train(config: TrainConfig):
         theta = initial_theta(cfg)
         gp = sparse_gp.init(1, 4)
         dummy_kernel = kernels.make_kernel_params(jnp.ones(4))
-        ctx = _context(cfg, gp, dummy_kernel)
+        ctx = policy_context(cfg, gp, dummy_kernel)
         keys = jax.random.split(key, static.hyperfit_episodes)
         eps = jax.vmap(lambda k: rollout(k, theta, ctx, behaviour, cfg))(keys)
         returns = jax.vmap(estimators.discounted_returns, in_axes=(0, None))(eps.rewards, cfg.discount)
@@ -218,7 +219,7 @@ def make_train(config: TrainConfig):
         t = state.update_index
 
         def episode(gp, key_e):
-            ep = rollout(key_e, state.theta, _context(cfg, gp, state.kernel), policy, cfg)
+            ep = rollout(key_e, state.theta, policy_context(cfg, gp, state.kernel), policy, cfg)
             returns = estimators.discounted_returns(ep.rewards, cfg.discount)
             reset = jnp.zeros((), jnp.int32)
             if static.uses_gp:
@@ -291,7 +292,7 @@ def make_train(config: TrainConfig):
     def episodes(key, state: TrainState, cfg=config, num_episodes: int = 3) -> Episode:
         """Episodes of the method's policy at `state` (theta and GP held fixed): fields gain a
         leading (num_episodes,) axis. For figures of visited states and for evaluation."""
-        ctx = _context(cfg, state.gp, state.kernel)
+        ctx = policy_context(cfg, state.gp, state.kernel)
         keys = jax.random.split(key, num_episodes)
         return jax.vmap(lambda k: rollout(k, state.theta, ctx, policy, cfg))(keys)
 

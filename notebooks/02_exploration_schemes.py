@@ -78,16 +78,7 @@ for m, run in runs.items():
 final_state = jax.tree_util.tree_map(lambda x: x[0], results["guided_variance"][0])
 cfg = cfgs["guided_variance"]
 theta, gp, kern = final_state.theta, final_state.gp, final_state.kernel
-sf2 = kern.signal_variance
-ctx = policies.make_context(
-    gp, kern,
-    variance_scale=cfg.guided_variance_scale / sf2,
-    variance_floor=cfg.guided_variance_floor,
-    inverse_temperature=cfg.inverse_temperature,
-    energy_width=cfg.energy_width,
-    candidate_scale=cfg.candidate_scale / sf2,
-    candidate_floor=cfg.candidate_floor,
-)
+ctx = train.policy_context(cfg, gp, kern)  # exactly what the training loop gives its policy
 controller = runs["guided_variance"].controller
 # A visited state (the paper preset's mean start) and one the policy has not been to.
 STATES = {"visited": jnp.array([np.pi - 0.5, 0.0]), "novel": jnp.array([np.pi - 0.5, 2.5])}
