@@ -49,6 +49,13 @@ def make_mesh(num_devices: int | None = None) -> Mesh:
     return Mesh(np.array(devices[:n]), ("seeds",))
 
 
+def pad_seeds(seeds: Sequence[int], num_devices: int) -> list[int]:
+    """The seeds followed by extra ones up to a multiple of `num_devices` (they only fill devices;
+    their results are dropped)."""
+    seeds = list(map(int, seeds))
+    return seeds + [seeds[-1] + 1 + i for i in range((-len(seeds)) % num_devices)]
+
+
 def _shard(tree, mesh: Mesh):
     """Places every leaf with its leading (seed) axis split over the mesh."""
     sharding = NamedSharding(mesh, PartitionSpec("seeds"))
@@ -114,8 +121,8 @@ def run_method(
     n_dev = mesh.devices.size
     seeds = list(map(int, seeds))
     n_real = len(seeds)
-    pad = (-n_real) % n_dev
-    padded = seeds + [seeds[-1] + 1 + i for i in range(pad)]  # extra seeds only fill devices
+    padded = pad_seeds(seeds, n_dev)
+    pad = len(padded) - n_real
     train = train_lib.make_train(cfg)
     keys = _shard(seed_keys(padded), mesh)
     if kernels is not None and pad:
@@ -299,9 +306,7 @@ def reproduce(
                         train_lib.kernels.KernelParams(*(f[k] for k in fields)), f["prior_mean"])
         if kernels is None:
             t0 = time.perf_counter()
-            n_dev = mesh.devices.size
-            padded = list(seeds) + [seeds[-1] + 1 + i for i in range((-len(seeds)) % n_dev)]
-            fitted = fit(_shard(seed_keys(padded), mesh))
+            fitted = fit(_shard(seed_keys(pad_seeds(seeds, mesh.devices.size)), mesh))
             kernels = jax.tree_util.tree_map(lambda x: np.asarray(x)[: len(seeds)], jax.device_get(fitted))
             np.savez(kpath, seeds=np.asarray(seeds), prior_mean=kernels.mean,
                      **kernels.kernel._asdict())
