@@ -18,6 +18,8 @@ import jax.numpy as jnp
 import gpguided_jax
 from gpguided_jax import pendulum
 
+gpguided_jax.enable_x64()  # float64 (the package leaves the choice to its user)
+
 
 def _policy(key, s):
     return -2.0 * jnp.sin(s[0]) - 0.3 * s[1] + 0.5 * jax.random.normal(key, (), s.dtype)

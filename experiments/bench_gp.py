@@ -32,8 +32,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import gpguided_jax  # noqa: F401  (enables float64)
+import gpguided_jax
 from gpguided_jax import gp_reference, kernels, sparse_gp
+
+gpguided_jax.enable_x64()  # float64 (the package leaves the choice to its user)
 
 LENGTHSCALES = np.array([0.5, 0.5, 1.0, 2.0])
 SIGNAL_VARIANCE = 4.0

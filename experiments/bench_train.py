@@ -25,6 +25,8 @@ from gpguided_jax import config as C
 from gpguided_jax import gp_reference
 from gpguided_jax import train as T
 
+gpguided_jax.enable_x64()  # float64 (the package leaves the choice to its user)
+
 
 def numpy_gp_pg_updates(cfg, prior, num_updates, rng):
     """Per-seed NumPy Algorithm 1 (method gp_pg, linear controller): returns wall seconds.

@@ -59,12 +59,13 @@ import jax.numpy as jnp  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from gpguided_jax import _x64, baselines  # noqa: E402
+import gpguided_jax  # noqa: E402
+from gpguided_jax import baselines  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
 from gpguided_jax import reproduce as reproduce_lib  # noqa: E402
 from gpguided_jax import train as train_lib  # noqa: E402
 
-_x64.enable_x64_from_env()
+gpguided_jax.enable_x64()  # float64: the package leaves this choice to its user
 
 PPO_STEPS_PER_ITERATION = baselines.ppo_steps_per_iteration(
     baselines.PPO_DEFAULTS["num_envs"],

@@ -35,8 +35,10 @@ import jax.numpy as jnp  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-import gpguided_jax  # noqa: E402,F401  (enables float64)
+import gpguided_jax  # noqa: E402
 from gpguided_jax import hyperfit, kernels, pendulum, sparse_gp  # noqa: E402
+
+gpguided_jax.enable_x64()  # float64: the package leaves this choice to its user
 
 LAMBDAS = (0.0, 10.0, 100.0, 400.0, 1000.0)
 

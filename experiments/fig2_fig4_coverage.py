@@ -60,10 +60,12 @@ import jax.numpy as jnp  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-import gpguided_jax  # noqa: E402,F401  (enables float64)
+import gpguided_jax  # noqa: E402
 from gpguided_jax import analysis, estimators, reproduce  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
 from gpguided_jax import train as train_lib  # noqa: E402
+
+gpguided_jax.enable_x64()  # float64: the package leaves this choice to its user
 from gpguided_jax.sweep import even_chunk_size  # noqa: E402
 
 METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction")

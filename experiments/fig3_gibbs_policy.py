@@ -3,6 +3,8 @@
 At a state s with c(s) = 0 (the linear controller at its zero initialisation), a GP is built whose
 mean Q_GP(s, a) over a in [-6, 6] has two peaks (an exact GP on a grid of actions at s, targets
 from a two-bump function in negative reward units, as the pendulum's returns are). Panel (a)
+
+gpguided_jax.enable_x64()
 plots over a dense action grid the min-max normalised Q~, the energy
 E = Q~ exp(-a^2 / (2 sigma_e^2)) and pi = softmax(beta E) (beta = 10; pi is shown scaled to a
 maximum of 1); panel (b) the histogram of actions selected by `policies.gibbs_policy` over
@@ -25,9 +27,7 @@ import jax.numpy as jnp  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from gpguided_jax import _x64, controllers, kernels, policies, sparse_gp  # noqa: E402
-
-_x64.enable_x64_from_env()
+from gpguided_jax import controllers, kernels, policies, sparse_gp  # noqa: E402
 
 STATE = (np.pi / 2, 1.0)  # any state: the controller is zero everywhere
 ACTION_RANGE = 6.0

@@ -20,9 +20,10 @@ import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
-from gpguided_jax import _x64, controllers, kernels, policies, sparse_gp
+import gpguided_jax
+from gpguided_jax import controllers, kernels, policies, sparse_gp
 
-_x64.enable_x64_from_env()
+gpguided_jax.enable_x64()
 
 SLOTS = 8
 NUM_CANDIDATES = 16

@@ -1,16 +1,16 @@
 """gpguided_jax: guided policy search with sparse online Gaussian processes in JAX.
 
 A JAX implementation of Jakab & Csato, "Reinforcement learning with guided policy search using
-Gaussian processes" (IJCNN 2012). Importing the package enables float64 in JAX (see `_x64.py`;
-set GPGUIDED_JAX_X64=0 before import to keep JAX's float32 default).
+Gaussian processes" (IJCNN 2012).
+
+Importing the package does NOT change JAX's global configuration. Runs are float64 by default
+(`TrainConfig.dtype`), which needs JAX's 64-bit mode: call `gpguided_jax.enable_x64()` first, or
+choose `dtype="float32"`. The `gpguided` command line does this for you (`--dtype`).
 """
 
-from gpguided_jax._x64 import enable_x64_from_env as _enable_x64_from_env
+from gpguided_jax import kernels, pendulum, sparse_gp
+from gpguided_jax._x64 import enable_x64, x64_enabled
 
-_enable_x64_from_env()
+__version__ = "0.2.0"
 
-from gpguided_jax import kernels, pendulum, sparse_gp  # noqa: E402
-
-__version__ = "0.1.0"
-
-__all__ = ["kernels", "pendulum", "sparse_gp", "__version__"]
+__all__ = ["enable_x64", "kernels", "pendulum", "sparse_gp", "x64_enabled", "__version__"]

@@ -1,21 +1,25 @@
-"""The one place where float64 is switched on.
+"""Float64 in JAX is the user's choice: this package never switches it on at import.
 
-The sparse GP keeps an inverse Gram matrix and a negative semi-definite C up to date by rank-one
-updates; in float32 these lose several digits per few hundred updates, and the hyperparameter fit
-takes a 2000x2000 Cholesky. So `import gpguided_jax` enables ``jax_enable_x64`` unless the
-environment variable ``GPGUIDED_JAX_X64`` is set to ``0``. With x64 on, float32 is still available
-by passing float32 arrays (the tests run the GP in float32 that way).
+JAX computes in float32 unless its 64-bit mode is on. The sparse GP and the hyperparameter fit are
+run in float64 by default (`TrainConfig.dtype = "float64"`), which needs that mode; call
+`gpguided_jax.enable_x64()` (or `jax.config.update("jax_enable_x64", True)`, or set the
+environment variable JAX_ENABLE_X64=1) before creating any arrays. `TrainConfig(dtype="float32")`
+runs everything in float32 and works either way. The `gpguided` command line sets the mode from
+its `--dtype` option.
 """
-
-import os
 
 import jax
 
-X64_ENV_VAR = "GPGUIDED_JAX_X64"
+
+def enable_x64(enabled: bool = True) -> bool:
+    """Turns JAX's 64-bit mode on (or off) for this process; returns whether it is on.
+
+    Call it before creating arrays: arrays made before the switch keep their dtype.
+    """
+    jax.config.update("jax_enable_x64", bool(enabled))
+    return bool(jax.config.jax_enable_x64)
 
 
-def enable_x64_from_env() -> bool:
-    """Enables float64 in JAX unless ``GPGUIDED_JAX_X64=0``; returns whether it is on."""
-    if os.environ.get(X64_ENV_VAR, "1") != "0":
-        jax.config.update("jax_enable_x64", True)
+def x64_enabled() -> bool:
+    """Whether JAX's 64-bit mode is on."""
     return bool(jax.config.jax_enable_x64)

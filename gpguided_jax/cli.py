@@ -7,7 +7,37 @@ import os
 import sys
 
 
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (refused with a one-line message otherwise)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def _set_precision(dtype: str) -> None:
+    """float64 runs need JAX's 64-bit mode; this process is ours, so switch it as asked."""
+    import gpguided_jax
+
+    gpguided_jax.enable_x64(dtype == "float64")
+
+
 def _cmd_demo(args) -> int:
+    _set_precision("float64")
     import jax
     import jax.numpy as jnp
     import matplotlib
@@ -60,16 +90,16 @@ def _cmd_demo(args) -> int:
 
 
 def _cmd_reproduce(args) -> int:
+    _set_precision(args.dtype)
     from gpguided_jax import reproduce
 
-    if args.seeds < 1:
-        raise SystemExit("--seeds must be >= 1")
     seeds = list(range(args.seed_start, args.seed_start + args.seeds))
     out = reproduce.reproduce(
         preset=args.preset,
         seeds=seeds,
         methods=args.methods,
         out_dir=args.out,
+        dtype=args.dtype,
         chunk_size=args.chunk_size,
         num_devices=args.devices,
         max_chunks=args.max_chunks,
@@ -80,7 +110,7 @@ def _cmd_reproduce(args) -> int:
     print(out["markdown"])
     for path in out["figures"]:
         print(f"wrote {path}")
-    print(f"wrote {args.out}/results.npz, summary.csv, config.json")
+    print(f"wrote {args.out}/results.npz, summary.csv, comparisons.csv, config.json")
     return 0
 
 
@@ -101,15 +131,15 @@ def _parse_overrides(items: list[str] | None) -> dict:
 
 
 def _cmd_sweep(args) -> int:
+    _set_precision(args.dtype)
     from gpguided_jax import sweep
 
-    if args.seeds < 1:
-        raise SystemExit("--seeds must be >= 1")
     try:
         field = sweep.resolve_param(args.param)
     except ValueError as e:
         raise SystemExit(f"gpguided sweep: error: {e}") from None
     overrides = _parse_overrides(args.set)
+    overrides["dtype"] = args.dtype
     if args.num_updates is not None:
         overrides["num_updates"] = args.num_updates
     out_dir = args.out or os.path.join("results", f"sweep_{field}")
@@ -151,12 +181,15 @@ def build_parser() -> argparse.ArgumentParser:
         "from the checkpoints in --out.",
     )
     rep.add_argument("--preset", default="paper", choices=sorted(PRESETS))
-    rep.add_argument("--seeds", type=int, default=10, help="number of seeds (default 10)")
-    rep.add_argument("--seed-start", type=int, default=0, help="first seed (default 0)")
+    rep.add_argument("--seeds", type=positive_int, default=10, help="number of seeds (default 10)")
+    rep.add_argument("--seed-start", type=non_negative_int, default=0, help="first seed (default 0)")
     rep.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
     rep.add_argument("--out", default="results/paper", help="output directory")
-    rep.add_argument("--chunk-size", type=int, default=50, help="updates per compiled chunk")
-    rep.add_argument("--devices", type=int, default=None, help="use at most this many devices")
+    rep.add_argument("--dtype", default="float64", choices=["float64", "float32"],
+                     help="computation dtype of every array (default float64)")
+    rep.add_argument("--chunk-size", type=positive_int, default=50, help="updates per compiled chunk")
+    rep.add_argument("--devices", type=positive_int, default=None,
+                     help="use at most this many devices")
     rep.add_argument("--max-chunks", type=int, default=None, help=argparse.SUPPRESS)
     rep.set_defaults(func=_cmd_reproduce)
 
@@ -180,14 +213,18 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--values", required=True, nargs="+", type=float, help="its values")
     sw.add_argument("--method", default="gp_pg", choices=list(METHODS))
     sw.add_argument("--preset", default="paper", choices=sorted(PRESETS))
-    sw.add_argument("--seeds", type=int, default=5, help="seeds per value (default 5)")
-    sw.add_argument("--seed-start", type=int, default=0, help="first seed (default 0)")
+    sw.add_argument("--seeds", type=positive_int, default=5, help="seeds per value (default 5)")
+    sw.add_argument("--seed-start", type=non_negative_int, default=0, help="first seed (default 0)")
     sw.add_argument("--out", default=None, help="output directory (default results/sweep_<field>)")
-    sw.add_argument("--chunk-size", type=int, default=50, help="updates per compiled chunk")
-    sw.add_argument("--num-updates", type=int, default=None, help="override num_updates (quick runs)")
+    sw.add_argument("--dtype", default="float64", choices=["float64", "float32"],
+                    help="computation dtype of every array (default float64)")
+    sw.add_argument("--chunk-size", type=positive_int, default=50, help="updates per compiled chunk")
+    sw.add_argument("--num-updates", type=positive_int, default=None,
+                    help="override num_updates (quick runs)")
     sw.add_argument("--set", nargs="*", metavar="FIELD=VALUE",
                     help="further config overrides, e.g. --set gp_capacity=50 optimizer=adam")
-    sw.add_argument("--devices", type=int, default=None, help="use at most this many devices")
+    sw.add_argument("--devices", type=positive_int, default=None,
+                    help="use at most this many devices")
     sw.set_defaults(func=_cmd_sweep)
     return ap
 

@@ -26,6 +26,7 @@ METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction")
 CONTROLLERS = ("linear", "rbf")
 AGE_FUNCTIONS = ("exp", "logit")
 OPTIMIZERS = ("sgd", "adam")
+DTYPES = ("float64", "float32")
 
 STATIC_FIELDS = (
     "method",
@@ -41,6 +42,7 @@ STATIC_FIELDS = (
     "age_fn",
     "optimizer",
     "use_baseline",
+    "dtype",
 )
 
 
@@ -67,9 +69,13 @@ class TrainConfig:
       optimizer: 'sgd' (the paper) or 'adam'.
       use_baseline: subtract V(s) = Q_GP(s, c(s)) (GP methods) or the batch-mean return-to-go at
         each step (REINFORCE); off in the paper.
+      dtype: 'float64' (default; needs JAX's x64 mode, `gpguided_jax.enable_x64()`) or 'float32'.
+        Every array of a run has this dtype: GP, policy, physics, hyperparameter fit.
 
     Traced fields (leaves; sweepable by vmap):
       learning_rate: eta of the ascent step.
+      max_grad_norm: the gradient estimate's global norm is clipped to this before the step
+        (`optax.clip_by_global_norm`; not in the paper). `float('inf')` turns clipping off.
       discount: gamma of the returns-to-go.
       init_log_std: log sigma of the initial (and, for REINFORCE/gp_pg, learnable) noise.
       min_std, max_std: the learnable sigma is clipped to [min_std, max_std] (N m) after every
@@ -77,7 +83,9 @@ class TrainConfig:
         seeds; noise beyond the 5 N m torque limit only adds clipping).
       age_penalty: lambda of eq. 13.
       age_scale: c of eq. 14/15.
-      novelty_tol: relative novelty threshold for a new basis vector (eq. 10).
+      novelty_tol: relative novelty tolerance for a new basis vector (eq. 10); the threshold is
+        max(novelty_tol, resolution(dtype)) k** or 1% of sigma_n^2, whichever is larger
+        (`sparse_gp.novelty_threshold`).
       guided_variance_scale: exploration variance (N m)^2 where the GP knows nothing: lambda_v of
         eq. 16 is this divided by the fitted signal variance, so that it is in torque units.
       guided_variance_floor: lower bound on sigma^2_GP (N m)^2.
@@ -102,8 +110,10 @@ class TrainConfig:
     age_fn: str = "exp"
     optimizer: str = "sgd"
     use_baseline: bool = False
+    dtype: str = "float64"
     # traced
     learning_rate: Any = 2e-4
+    max_grad_norm: Any = 1000.0
     discount: Any = 0.99
     init_log_std: Any = math.log(1.5)
     min_std: Any = 0.05
@@ -155,7 +165,7 @@ jax.tree_util.register_dataclass(
     TrainConfig, data_fields=list(TRACED_FIELDS), meta_fields=list(STATIC_FIELDS)
 )
 
-_POSITIVE = ("learning_rate", "min_std", "max_std", "age_scale", "guided_variance_scale",
+_POSITIVE = ("learning_rate", "max_grad_norm", "min_std", "max_std", "age_scale", "guided_variance_scale",
              "guided_variance_floor", "inverse_temperature", "energy_width", "candidate_scale",
              "candidate_floor")
 _NON_NEGATIVE = ("age_penalty", "novelty_tol")
@@ -175,6 +185,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         _fail("age_fn", f"unknown age function {cfg.age_fn!r}; choose from {AGE_FUNCTIONS}")
     if cfg.optimizer not in OPTIMIZERS:
         _fail("optimizer", f"unknown optimizer {cfg.optimizer!r}; choose from {OPTIMIZERS}")
+    if cfg.dtype not in DTYPES:
+        _fail("dtype", f"unknown dtype {cfg.dtype!r}; choose from {DTYPES}")
     for f in ("num_updates", "episodes_per_update", "episode_length", "gp_capacity",
               "hyperfit_samples", "hyperfit_steps", "hyperfit_subset", "num_candidates"):
         v = getattr(cfg, f)
@@ -191,7 +203,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         if isinstance(v, jax.core.Tracer):
             continue
         arr = np.asarray(v, dtype=float)
-        if not np.all(np.isfinite(arr)):
+        finite = np.isfinite(arr) | ((f == "max_grad_norm") & (arr == np.inf))
+        if not np.all(finite):
             _fail(f, f"must be finite, got {v!r}")
         if f in _POSITIVE and np.any(arr <= 0):
             _fail(f, f"must be > 0, got {v!r}")
@@ -209,18 +222,32 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     return cfg
 
 
+def check_dtype_available(dtype: str) -> None:
+    """Raises a `ValueError` if float64 is asked for while JAX's x64 mode is off."""
+    if dtype == "float64" and not jax.config.jax_enable_x64:
+        raise ValueError(
+            "TrainConfig.dtype: 'float64' needs JAX's 64-bit mode, which is off. Call "
+            "gpguided_jax.enable_x64() (or jax.config.update('jax_enable_x64', True), or set "
+            "JAX_ENABLE_X64=1) before creating arrays, or use dtype='float32'."
+        )
+
+
 def make_config(*, pendulum_overrides: dict | None = None, **fields) -> TrainConfig:
-    """A validated `TrainConfig`; traced fields are cast to arrays of the default float dtype."""
+    """A validated `TrainConfig`; traced fields and the physics are cast to arrays of `dtype`."""
     unknown = set(fields) - {f.name for f in dataclasses.fields(TrainConfig)}
     if unknown:
         raise TypeError(f"unknown TrainConfig field(s): {sorted(unknown)}")
+    dtype = fields.get("dtype", TrainConfig.dtype)
+    if dtype in DTYPES:
+        check_dtype_available(dtype)
     if fields.get("pendulum") is None:
-        fields["pendulum"] = pendulum.make_params(**(pendulum_overrides or {}))
+        fields["pendulum"] = pendulum.make_params(
+            dtype=jnp.dtype(dtype) if dtype in DTYPES else None, **(pendulum_overrides or {}))
     cfg = TrainConfig(**fields)
     validate(cfg)
-    dtype = jnp.result_type(float)
     return cfg.replace(
-        **{f: jnp.asarray(getattr(cfg, f), dtype) for f in TRACED_FIELDS if f != "pendulum"}
+        pendulum=jax.tree_util.tree_map(lambda a: jnp.asarray(a, cfg.dtype), cfg.pendulum),
+        **{f: jnp.asarray(getattr(cfg, f), cfg.dtype) for f in TRACED_FIELDS if f != "pendulum"},
     )
 
 

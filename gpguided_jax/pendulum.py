@@ -29,6 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gpguided_jax import _random
+
 TWO_PI = 2.0 * math.pi
 
 
@@ -178,7 +180,7 @@ def reward_mean(state: jax.Array) -> jax.Array:
 
 def reset(key: jax.Array, params: PendulumParams) -> jax.Array:
     """Draws a start state [phi, omega] (phi wrapped to [0, 2*pi))."""
-    z = jax.random.normal(key, (2,), params.start_mean.dtype)
+    z = _random.normal(key, (2,), params.start_mean.dtype)
     s = params.start_mean + params.start_std * z
     return jnp.stack([wrap_angle(s[0]), s[1]])
 
@@ -198,7 +200,7 @@ def step(key: jax.Array, state: jax.Array, action: jax.Array, params: PendulumPa
     torque = clip_torque(jnp.asarray(action, state.dtype), params)
     y = integrate(state, torque, params)
     next_state = jnp.stack([wrap_angle(y[0]), y[1]])
-    noise = params.reward_noise_std * jax.random.normal(key, (), state.dtype)
+    noise = params.reward_noise_std * _random.normal(key, (), state.dtype)
     return next_state, reward_mean(next_state) + noise
 
 

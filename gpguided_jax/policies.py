@@ -22,7 +22,8 @@ actions are NOT clipped (the environment clips the torque); log-probabilities an
 of the unclipped sample.
 
 GP convention (gpguided_jax.sparse_gp): latent variance sigma^2(x) = k** + k^T C k with C negative
-semi-definite, clipped to [0, k**]. The paper writes k** - k^T C k with C of the opposite sign.
+semi-definite (the paper writes k** - k^T C k with C of the opposite sign), computed in square-root
+form as max(k** - |T k|^2, 0) + |Z k|^2, which is >= 0 by construction.
 """
 
 from collections.abc import Callable
@@ -32,8 +33,8 @@ import chex
 import jax
 import jax.numpy as jnp
 
+from gpguided_jax import _random, kernels, sparse_gp
 from gpguided_jax import controllers as controllers_lib
-from gpguided_jax import kernels, sparse_gp
 
 _LOG_2PI = 1.8378770664093453  # log(2 pi)
 
@@ -171,44 +172,42 @@ def _scale_tree(tree, scalar):
 
 
 def gp_latent_variance(gp, kernel, state, action):
-    """sigma^2(x*) = clip(k** + k^T C k, 0, k**) at x* = features(s, a*) (eq. 6, SPEC §2).
-
-    The clip is written with `jnp.where` (not `jnp.clip`) so that autodiff takes the gradient of
-    exactly one branch, matching `gp_latent_variance_and_grad`.
-    """
+    """sigma^2(x*) = max(gamma, 0) + |Z k|^2 at x* = features(s, a*) (eq. 6; `sparse_gp.predict`)."""
     x = kernels.state_action_features(state, action)
-    k = sparse_gp.masked_kernel_vector(gp, x, kernel)
-    kxx = kernels.kernel_diag(x, kernel)
-    raw = kxx + k @ (gp.C @ k)
-    return jnp.where(raw < 0.0, jnp.zeros_like(raw), jnp.where(raw > kxx, kxx, raw))
+    return sparse_gp.predict(gp, x, kernel)[1]
 
 
 def gp_latent_variance_and_grad(gp, kernel, state, action):
-    """sigma^2(x*) and d sigma^2 / d a* at x* = features(s, a*) (eq. 19, C held constant).
+    """sigma^2(x*) and d sigma^2 / d a* at x* = features(s, a*) (eq. 18-19, C held constant).
 
-    With sigma^2 = k** + k^T C k (C constant):
-      d sigma^2/d a* = d k**/d a* + k^T (C + C^T) dk/d a*  (= 2 k^T C dk/d a* for symmetric C),
+    In the square-root form of `gpguided_jax.sparse_gp`, sigma^2 = k** - |T k|^2 + |Z k|^2 (the
+    Csato-Opper k** + k^T C k with C = Z^T Z - T^T T), so with T and Z held constant (the paper's
+    "we consider C constant"):
+      d sigma^2/d a* = d k**/d a* - 2 (T k)^T (T dk/d a*) + 2 (Z k)^T (Z dk/d a*)
+                     = d k**/d a* + 2 k^T C dk/d a*,
     d k**/d a* = 0 for the stationary SE kernel, and for the SE-ARD kernel
       dk_i/d a* = -k_i (a* - b_{i,a}) / l_a^2,
     with b_{i,a} the action coordinate of basis vector i and l_a its length-scale (the action is
-    the last coordinate of `kernels.state_action_features`). Where the clip to [0, k**] is active
-    the derivative is 0.
+    the last coordinate of `kernels.state_action_features`). Where the residual k** - |T k|^2 is
+    clipped at 0 (rounding only) its derivative is 0.
 
     Returns:
       (variance, d_variance_d_action), scalars.
     """
     chex.assert_shape(state, (2,))
     x = kernels.state_action_features(state, action)
+    kernel = jax.tree.map(lambda a: jnp.asarray(a, gp.alpha.dtype), kernel)
     k = sparse_gp.masked_kernel_vector(gp, x, kernel)
     kxx = kernels.kernel_diag(x, kernel)
-    raw = kxx + k @ (gp.C @ k)
     action_lengthscale = kernel.lengthscales[-1]
     dk = -k * (x[-1] - gp.basis_vectors[:, -1]) / (action_lengthscale * action_lengthscale)
-    # (C + C^T) rather than 2C: identical for the symmetric C the GP keeps, and exact otherwise.
-    draw = dk @ ((gp.C + gp.C.T) @ k)
-    in_range = (raw >= 0.0) & (raw <= kxx)
-    variance = jnp.where(raw < 0.0, jnp.zeros_like(raw), jnp.where(raw > kxx, kxx, raw))
-    return variance, jnp.where(in_range, draw, jnp.zeros_like(draw))
+    T, Z = gp.gram_inv_root, gp.alpha_cov_root
+    w, z = T @ k, Z @ k
+    gamma = kxx - w @ w
+    positive = gamma > 0.0
+    variance = jnp.where(positive, gamma, jnp.zeros_like(gamma)) + z @ z
+    dvariance = jnp.where(positive, -2.0 * (w @ (T @ dk)), 0.0) + 2.0 * (z @ (Z @ dk))
+    return variance, dvariance
 
 
 def gp_mean(gp, kernel, state, action):
@@ -236,7 +235,7 @@ def guided_variance_and_grad(controller, controller_params, state, ctx):
     grad sigma^2_GP = lambda_v d sigma^2/d a* |_{a* = c(s)} * dc/dtheta_c, with C constant.
     The floor: where lambda_v sigma^2(x*) <= floor the variance is the constant floor and this
     gradient is exactly 0 (the policy then behaves like the fixed-noise policy with sigma^2 =
-    floor); the same holds where the GP variance is clipped at 0 or at k**.
+    floor).
 
     Returns:
       (variance, grad_variance, mean_action, grad_mean_action); the gradients are pytrees like
@@ -273,7 +272,7 @@ def fixed_noise_policy(controller: controllers_lib.Controller) -> Policy:
         chex.assert_shape(state, (2,))
         mean_action = controller.apply(theta.controller, state)
         std = jnp.exp(theta.log_std)
-        action = mean_action + std * jax.random.normal(key, (), mean_action.dtype)
+        action = mean_action + std * _random.normal(key, (), mean_action.dtype)
         aux = PolicyAux(
             mean_action=mean_action, variance=std * std, **_empty_gibbs_fields(state.dtype)
         )
@@ -314,7 +313,7 @@ def guided_variance_policy(controller: controllers_lib.Controller) -> Policy:
       d log pi/d theta_c = (a - c)/sigma^2_GP dc/dtheta_c
                            + ((a - c)^2 - sigma^2_GP)/(2 sigma^4_GP) grad sigma^2_GP,
       grad sigma^2_GP = lambda_v (2 k^T C dk/da*) dc/dtheta_c  (eq. 18-19, C constant; 0 on the
-      floor and where the GP variance is clipped),
+      floor),
       d log pi/d log sigma = 0 (sigma is not used).
     log_prob and the score evaluate sigma^2_GP with the GP in `ctx`: pass the GP that the action
     was sampled with to get the score of the behaviour distribution.
@@ -325,7 +324,7 @@ def guided_variance_policy(controller: controllers_lib.Controller) -> Policy:
         mean_action = controller.apply(theta.controller, state)
         latent = gp_latent_variance(ctx.gp, ctx.kernel, state, mean_action)
         variance = _floored(ctx.variance_scale * latent, ctx.variance_floor)
-        action = mean_action + jnp.sqrt(variance) * jax.random.normal(
+        action = mean_action + jnp.sqrt(variance) * _random.normal(
             key, (), mean_action.dtype
         )
         aux = PolicyAux(
@@ -403,7 +402,7 @@ def gibbs_distribution(candidates, normalised_q, mean_action, ctx):
 
 def gibbs_select(key, energy, inverse_temperature):
     """J ~ Categorical(softmax(beta E)); the selection step of `gibbs_policy.sample`."""
-    return jax.random.categorical(key, inverse_temperature * energy).astype(jnp.int32)
+    return _random.categorical(key, inverse_temperature * energy)
 
 
 def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 32) -> Policy:
@@ -433,7 +432,7 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
         key_candidates, key_select = jax.random.split(key)
         mean_action = controller.apply(theta.controller, state)
         variance = candidate_variance(controller, theta.controller, state, ctx)
-        candidates = mean_action + jnp.sqrt(variance) * jax.random.normal(
+        candidates = mean_action + jnp.sqrt(variance) * _random.normal(
             key_candidates, (num_candidates,), mean_action.dtype
         )
         q_values = jax.vmap(gp_mean, in_axes=(None, None, None, 0))(

@@ -1,23 +1,35 @@
-"""Chunked, resumable, device-sharded runs of every method over many seeds (Fig. 5), and their
-summary, table and plots. The `gpguided reproduce` command is a thin wrapper over `reproduce`.
+"""Chunked, resumable, device-sharded runs of every method over many seeds (Fig. 5), with their
+summary, failure accounting, tables and plots. `gpguided reproduce` is a thin wrapper over
+`reproduce`, which reads as one pass:
 
-Output directory layout:
-  config.json            resolved config of every method (+ seeds, chunk size, devices)
+  configs -> config.json -> fitted GP priors (kernels.npz) -> each method, a chunk at a time
+  (checkpoint_<method>.npz) -> results.npz -> summary.csv + comparisons.csv -> Fig. 5 PNGs.
+
+Output directory layout (every file is written atomically: to a temporary name, then renamed):
+  config.json              resolved config of every method (+ seeds, chunk size, devices, dtype)
+  kernels.npz              fitted GP hyperparameters and prior mean per seed (shared by GP methods)
   checkpoint_<method>.npz  state after the last finished chunk and the records so far
-  kernels.npz            fitted GP hyperparameters and prior mean per seed (shared by the GP methods)
-  results.npz            methods (names), seeds, and per-update records of shape (methods, seeds, updates)
-  summary.csv            final performance (mean, 95% CI over seeds) and updates to 90%
+  results.npz              methods, seeds, per-update records of shape (methods, seeds, updates)
+  summary.csv              per method: final performance (mean and t-interval; IQM and stratified
+                           bootstrap interval), updates to 90%, failing seeds by cause
+  comparisons.csv          probability of improvement (rliable) of each GP method over REINFORCE
+                           and of each guided method over gp_pg, with bootstrap intervals
   fig5_reward.png, fig5_exploration.png
+
+A checkpoint or kernels file that cannot be read is renamed to `<name>.corrupt` (the log says so)
+and that part of the run starts afresh.
 """
 
 from __future__ import annotations
 
 import csv
 import hashlib
+import io
 import json
 import os
 import sys
 import time
+import zipfile
 from typing import Callable, Sequence
 
 import jax
@@ -26,14 +38,73 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from gpguided_jax import config as config_lib
+from gpguided_jax import kernels as kernels_lib
+from gpguided_jax import pendulum
+from gpguided_jax import stats as stats_lib
 from gpguided_jax import train as train_lib
 
 RECORD_FIELDS = train_lib.UpdateRecord._fields
-CHECKPOINT_VERSION = 2  # bump when the state's pytree changes; older checkpoints are ignored
+CHECKPOINT_VERSION = 3  # bump when the state's pytree changes; older checkpoints are ignored
+# Pairs (x, y) for which the probability that x beats y is reported (rliable).
+COMPARISONS = (
+    ("gp_pg", "reinforce"),
+    ("guided_variance", "reinforce"),
+    ("guided_direction", "reinforce"),
+    ("guided_variance", "gp_pg"),
+    ("guided_direction", "gp_pg"),
+)
+FAILURE_CAUSES = ("nonfinite_grad", "gp_guard", "std_at_bound", "below_zero_torque", "nan_record")
 
 
 def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
+
+
+# ------------------------------------------------------------------------------------------------
+# Files: atomic writes, tolerant reads.
+# ------------------------------------------------------------------------------------------------
+
+
+def _atomic_write_bytes(path: str, data: bytes) -> None:
+    tmp = f"{path}.tmp-{os.getpid()}"
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)  # atomic: a reader sees the old file or the new one, never half of one
+
+
+def atomic_savez(path: str, **arrays) -> None:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    _atomic_write_bytes(path, buf.getvalue())
+
+
+def atomic_write_text(path: str, text: str) -> None:
+    _atomic_write_bytes(path, text.encode())
+
+
+def _set_aside(path: str, why: str, progress) -> None:
+    bad = path + ".corrupt"
+    os.replace(path, bad)
+    progress(f"WARNING: {path} could not be read ({why}); moved to {bad}, starting that part afresh")
+
+
+def _read_npz(path: str, progress) -> dict | None:
+    """All arrays of an .npz file, or None if it is missing; a corrupt file is set aside."""
+    if not os.path.exists(path):
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            return {k: f[k] for k in f.files}
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as e:
+        _set_aside(path, f"{type(e).__name__}: {e}", progress)
+        return None
+
+
+# ------------------------------------------------------------------------------------------------
+# Seeds and devices.
+# ------------------------------------------------------------------------------------------------
 
 
 def seed_keys(seeds: Sequence[int]) -> jax.Array:
@@ -58,37 +129,72 @@ def pad_seeds(seeds: Sequence[int], num_devices: int) -> list[int]:
 
 def _shard(tree, mesh: Mesh):
     """Places every leaf with its leading (seed) axis split over the mesh."""
-    sharding = NamedSharding(mesh, PartitionSpec("seeds"))
-    return jax.device_put(tree, sharding)
+    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec("seeds")))
 
 
-def _config_hash(cfg: config_lib.TrainConfig, seeds, chunk_size) -> str:
-    blob = json.dumps([CHECKPOINT_VERSION, cfg.to_json_dict(), list(map(int, seeds)), chunk_size],
-                      sort_keys=True)
-    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+def _digest(*parts) -> str:
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
+
+
+# ------------------------------------------------------------------------------------------------
+# The GP priors (hyperparameter fit), shared by every GP method of a seed.
+# ------------------------------------------------------------------------------------------------
+
+
+def fit_priors(cfg: config_lib.TrainConfig, seeds, out_dir, mesh, progress) -> train_lib.GPPrior:
+    """Loads `kernels.npz` if it was fitted for these seeds and this config, else fits and saves.
+
+    The fit depends only on the seed and the initial policy's data (not on the method), so every
+    GP method of a seed shares it.
+    """
+    path = os.path.join(out_dir, "kernels.npz")
+    fit_cfg = {k: v for k, v in cfg.to_json_dict().items() if k != "method"}
+    digest = _digest(CHECKPOINT_VERSION, fit_cfg, list(map(int, seeds)))
+    fields = kernels_lib.KernelParams._fields
+    saved = _read_npz(path, progress)
+    if saved is not None and str(saved.get("digest", "")) == digest:
+        return train_lib.GPPrior(kernels_lib.KernelParams(*(saved[k] for k in fields)),
+                                 saved["prior_mean"])
+    t0 = time.perf_counter()
+    fit = jax.jit(jax.vmap(train_lib.make_train(cfg).fit_kernel_for_seed))
+    fitted = jax.device_get(fit(_shard(seed_keys(pad_seeds(seeds, mesh.devices.size)), mesh)))
+    prior = jax.tree_util.tree_map(lambda x: np.asarray(x)[: len(seeds)], fitted)
+    atomic_savez(path, digest=digest, seeds=np.asarray(seeds), prior_mean=prior.mean,
+                 **prior.kernel._asdict())
+    progress(f"hyperparameter fit for {len(seeds)} seeds: {time.perf_counter() - t0:.1f}s")
+    return prior
+
+
+# ------------------------------------------------------------------------------------------------
+# One method, a chunk of updates at a time.
+# ------------------------------------------------------------------------------------------------
 
 
 def _save_checkpoint(path, state, records, chunks_done, digest):
     leaves = jax.tree_util.tree_leaves(jax.device_get(state))
     arrays = {f"leaf_{i}": np.asarray(x) for i, x in enumerate(leaves)}
     arrays.update({f"rec_{k}": np.asarray(v) for k, v in records.items()})
-    tmp = path + ".tmp.npz"
-    np.savez(tmp, chunks_done=chunks_done, digest=digest, **arrays)
-    os.replace(tmp, path)  # atomic: an interrupted save never leaves a half-written checkpoint
+    atomic_savez(path, chunks_done=chunks_done, digest=digest, **arrays)
 
 
-def _load_checkpoint(path, template, digest):
-    if not os.path.exists(path):
+def _load_checkpoint(path, template, digest, progress):
+    saved = _read_npz(path, progress)
+    if saved is None:
         return None
-    with np.load(path) as f:
-        if str(f["digest"]) != digest:
-            _log(f"ignoring {path}: it was written by a different config or seed list")
-            return None
-        treedef = jax.tree_util.tree_structure(template)
-        n = treedef.num_leaves
-        state = jax.tree_util.tree_unflatten(treedef, [f[f"leaf_{i}"] for i in range(n)])
-        records = {k[4:]: f[k] for k in f.files if k.startswith("rec_")}
-        return state, records, int(f["chunks_done"])
+    if str(saved.get("digest", "")) != digest:
+        progress(f"ignoring {path}: it was written by a different config or seed list")
+        return None
+    treedef = jax.tree_util.tree_structure(template)
+    leaves = [saved.get(f"leaf_{i}") for i in range(treedef.num_leaves)]
+    records = {k[4:]: v for k, v in saved.items() if k.startswith("rec_")}
+    shapes_ok = all(
+        leaf is not None and leaf.shape == t.shape
+        for leaf, t in zip(leaves, jax.tree_util.tree_leaves(template))
+    ) and set(records) == set(RECORD_FIELDS) and "chunks_done" in saved
+    if not shapes_ok:
+        _set_aside(path, "missing or mis-shaped arrays", progress)
+        return None
+    return jax.tree_util.tree_unflatten(treedef, leaves), records, int(saved["chunks_done"])
 
 
 def run_method(
@@ -101,7 +207,7 @@ def run_method(
     kernels=None,
     max_chunks: int | None = None,
     progress: Callable[[str], None] = _log,
-) -> dict[str, np.ndarray]:
+):
     """Runs one method for all seeds, a compiled chunk of updates at a time, resuming from
     `out_dir/checkpoint_<method>.npz` when present.
 
@@ -115,7 +221,7 @@ def run_method(
       max_chunks: stop after this many chunks in this call (to test resumption); None: run to the end.
 
     Returns:
-      dict field -> (seeds, updates_done) array of the per-update records.
+      (records, state): dict field -> (seeds, updates_done) records, and the final `TrainState`.
     """
     mesh = mesh or make_mesh()
     n_dev = mesh.devices.size
@@ -132,18 +238,18 @@ def run_method(
                    else jax.vmap(lambda k: train.init(k, cfg)))
     chunk_size = min(chunk_size, cfg.num_updates)
     n_chunks = -(-cfg.num_updates // chunk_size)
-    run = {}
+    compiled = {}
 
     def chunk_fn(n):
-        if n not in run:
-            run[n] = jax.jit(jax.vmap(lambda s: train.run_chunk(s, cfg, n)), donate_argnums=0)
-        return run[n]
+        if n not in compiled:
+            compiled[n] = jax.jit(jax.vmap(lambda s: train.run_chunk(s, cfg, n)), donate_argnums=0)
+        return compiled[n]
 
     ckpt = os.path.join(out_dir, f"checkpoint_{cfg.method}.npz")
-    digest = _config_hash(cfg, padded, chunk_size)
+    digest = _digest(CHECKPOINT_VERSION, cfg.to_json_dict(), padded, chunk_size)
     args = (keys,) if kernels is None else (keys, _shard(kernels, mesh))
     template = jax.eval_shape(init, *args)
-    loaded = _load_checkpoint(ckpt, template, digest)
+    loaded = _load_checkpoint(ckpt, template, digest, progress)
     if loaded is not None:
         state, records, done = loaded
         state = _shard(state, mesh)
@@ -152,7 +258,7 @@ def run_method(
         t0 = time.perf_counter()
         state = init(*args)
         jax.block_until_ready(state)
-        progress(f"[{cfg.method}] init (hyperparameter fit) {time.perf_counter() - t0:.1f}s")
+        progress(f"[{cfg.method}] init {time.perf_counter() - t0:.1f}s")
         records, done = {k: np.zeros((len(padded), 0)) for k in RECORD_FIELDS}, 0
 
     t_start, chunks_this_call = time.perf_counter(), 0
@@ -160,7 +266,6 @@ def run_method(
         n = min(chunk_size, cfg.num_updates - done * chunk_size)
         state, rec = chunk_fn(n)(state)
         rec = jax.device_get(rec)
-        bad = int(np.sum(rec.nonfinite_grad))
         records = {k: np.concatenate([records[k], np.asarray(getattr(rec, k))], axis=1)
                    for k in RECORD_FIELDS}
         done += 1
@@ -172,60 +277,160 @@ def run_method(
         eta = (cfg.num_updates - updates_done) / max(rate, 1e-9)
         msg = (f"[{cfg.method}] updates {updates_done}/{cfg.num_updates} | {rate:.1f} updates/s "
                f"x {n_real} seeds | ETA {eta:.0f}s | mean reward {np.mean(rec.mean_reward[:n_real, -1]):.3f}")
-        if bad:
-            msg += f" | WARNING: {bad} non-finite gradient estimates skipped"
+        for field, what in (("nonfinite_grad", "non-finite gradient estimates skipped"),
+                            ("gp_guard", "GP updates rejected by the health check")):
+            bad = int(np.sum(np.asarray(getattr(rec, field))[:n_real]))
+            if bad:
+                msg += f" | WARNING: {bad} {what}"
         progress(msg)
     return {k: v[:n_real] for k, v in records.items()}, state
 
 
-def summarise(mean_reward: np.ndarray, methods: Sequence[str]) -> list[dict]:
-    """Per method: final performance (mean reward per step over the last 10% of updates), its mean
-    and 95% t-interval over seeds, and the updates needed to reach 90% of the way from the initial
-    to the final performance (per seed on a 10-update moving average; mean over seeds).
+# ------------------------------------------------------------------------------------------------
+# Summary: final performance, failing seeds, probability of improvement.
+# ------------------------------------------------------------------------------------------------
+
+
+def zero_torque_reward(cfg: config_lib.TrainConfig, num_episodes: int = 2000, seed: int = 12345) -> float:
+    """Mean reward per step of the zero-torque policy on the preset's task (its start states and
+    episode length): the level below which a learned policy is worse than doing nothing."""
+    def episode(key):
+        traj = pendulum.rollout(key, cfg.pendulum, lambda k, s: jnp.zeros((), s.dtype),
+                                cfg.episode_length)
+        return jnp.mean(traj.rewards)
+
+    keys = jax.random.split(jax.random.PRNGKey(seed), num_episodes)
+    return float(jnp.mean(jax.jit(jax.vmap(episode))(keys)))
+
+
+def final_performance(mean_reward: np.ndarray) -> np.ndarray:
+    """Per seed: the mean reward per step over the last 10% of updates. (..., updates) -> (...)."""
+    tail = max(1, int(round(0.1 * mean_reward.shape[-1])))
+    return mean_reward[..., -tail:].mean(axis=-1)
+
+
+def failing_seeds(records: dict, zero_torque: float) -> dict[str, np.ndarray]:
+    """Per cause, a (seeds,) bool array of the seeds that failed (records of one method):
+
+    * nonfinite_grad: any gradient estimate was not finite;
+    * gp_guard: the GP health check rejected any episode's update;
+    * std_at_bound: the learnable sigma was at min_std or max_std after any update;
+    * below_zero_torque: the final performance is below the zero-torque policy's;
+    * nan_record: any record is NaN;
+    * any: any of these.
+    """
+    out = {
+        "nonfinite_grad": np.any(records["nonfinite_grad"] > 0, axis=-1),
+        "gp_guard": np.any(records["gp_guard"] > 0, axis=-1),
+        "std_at_bound": np.any(records["std_at_bound"] > 0, axis=-1),
+        "below_zero_torque": final_performance(records["mean_reward"]) < zero_torque,
+        "nan_record": np.any(np.stack([np.isnan(np.asarray(records[k], float)).any(-1)
+                                       for k in RECORD_FIELDS]), axis=0),
+    }
+    out["any"] = np.any(np.stack(list(out.values())), axis=0)
+    return out
+
+
+def updates_to_90pct(curves: np.ndarray) -> np.ndarray:
+    """Per seed: the first update at which a 10-update moving average has covered 90% of the way
+    from its start to the seed's final performance (num_updates if never)."""
+    n_updates = curves.shape[-1]
+    final = final_performance(curves)
+    w = min(10, n_updates)
+    smooth = np.stack([np.convolve(c, np.ones(w) / w, mode="valid") for c in curves])
+    start = smooth[:, :1]
+    target = start + 0.9 * (final[:, None] - start)
+    improving = final[:, None] >= start
+    reached = np.where(improving, smooth >= target, smooth <= target)
+    return np.where(reached.any(axis=1), reached.argmax(axis=1) + w, n_updates)
+
+
+def summarise(records_by_method: dict[str, dict], zero_torque: float | None = None,
+              reps: int = stats_lib.DEFAULT_REPS) -> list[dict]:
+    """One row per method: initial and final performance (mean reward per step over the first and
+    last 10% of updates), the final's mean with its 95% t-interval and its IQM with the 95%
+    stratified-bootstrap interval over seeds, the mean updates to 90%, and the failing seeds.
 
     Args:
-      mean_reward: (methods, seeds, updates).
+      records_by_method: method -> dict field -> (seeds, updates); at least mean_reward (the
+        failure counts need the other `UpdateRecord` fields too).
+      zero_torque: the zero-torque policy's reward per step (for `below_zero_torque`); None skips
+        the failure counts.
     """
     from scipy import stats
 
     rows = []
-    n_updates = mean_reward.shape[-1]
-    tail = max(1, int(round(0.1 * n_updates)))
-    for m, curves in zip(methods, mean_reward):
-        final = curves[:, -tail:].mean(axis=1)
+    for method, rec in records_by_method.items():
+        curves = np.asarray(rec["mean_reward"], float)
+        final = final_performance(curves)
         n = len(final)
         half = stats.t.ppf(0.975, n - 1) * final.std(ddof=1) / np.sqrt(n) if n > 1 else np.nan
-        w = min(10, n_updates)
-        smooth = np.stack([np.convolve(c, np.ones(w) / w, mode="valid") for c in curves])
-        start = smooth[:, :1]
-        target = start + 0.9 * (final[:, None] - start)
-        improving = final[:, None] >= start
-        reached = np.where(improving, smooth >= target, smooth <= target)
-        first = np.where(reached.any(axis=1), reached.argmax(axis=1) + w, n_updates)
-        rows.append(dict(
-            method=m,
+        lo, hi = stats_lib.bootstrap_ci(final, reps=reps) if n > 1 else (np.nan, np.nan)
+        tail = max(1, int(round(0.1 * curves.shape[-1])))
+        row = dict(
+            method=method,
+            seeds=n,
+            initial_mean=float(curves[:, :tail].mean()),
             final_mean=float(final.mean()),
             ci95_low=float(final.mean() - half),
             ci95_high=float(final.mean() + half),
-            initial_mean=float(curves[:, :tail].mean()),
-            updates_to_90pct=float(np.mean(first)),
-            seeds=n,
-        ))
+            final_iqm=stats_lib.iqm(final),
+            iqm_ci95_low=lo,
+            iqm_ci95_high=hi,
+            updates_to_90pct=float(np.mean(updates_to_90pct(curves))),
+        )
+        if zero_torque is not None:
+            fails = failing_seeds(rec, zero_torque)
+            row["failing_seeds"] = int(fails["any"].sum())
+            row.update({f"fail_{c}": int(fails[c].sum()) for c in FAILURE_CAUSES})
+            row["zero_torque_reward"] = zero_torque
+        rows.append(row)
     return rows
 
 
-def write_summary_csv(rows: list[dict], path: str) -> None:
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+def compare(records_by_method: dict[str, dict], pairs=COMPARISONS,
+            reps: int = stats_lib.DEFAULT_REPS) -> list[dict]:
+    """Probability of improvement P(X > Y) of final performance, with its 95% bootstrap interval,
+    for the pairs whose methods were both run."""
+    rows = []
+    for x, y in pairs:
+        if x in records_by_method and y in records_by_method:
+            fx = final_performance(np.asarray(records_by_method[x]["mean_reward"], float))
+            fy = final_performance(np.asarray(records_by_method[y]["mean_reward"], float))
+            lo, hi = stats_lib.probability_of_improvement_ci(fx, fy, reps=reps)
+            rows.append(dict(x=x, y=y, p_improvement=stats_lib.probability_of_improvement(fx, fy),
+                             ci95_low=lo, ci95_high=hi))
+    return rows
+
+
+def write_csv(rows: list[dict], path: str) -> None:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_text(path, buf.getvalue())
 
 
 def summary_markdown(rows: list[dict]) -> str:
-    lines = ["| method | initial | final (mean) | 95% CI | updates to 90% |", "|---|---|---|---|---|"]
+    lines = ["| method | initial | final (mean) | 95% CI | final (IQM) | 95% CI (bootstrap) | "
+             "updates to 90% | failing seeds |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        fails = r.get("failing_seeds", "")
+        if fails != "":
+            causes = ", ".join(f"{c} {r['fail_' + c]}" for c in FAILURE_CAUSES if r["fail_" + c])
+            fails = f"{fails}/{r['seeds']}" + (f" ({causes})" if causes else "")
         lines.append(f"| {r['method']} | {r['initial_mean']:.3f} | {r['final_mean']:.3f} | "
-                     f"[{r['ci95_low']:.3f}, {r['ci95_high']:.3f}] | {r['updates_to_90pct']:.0f} |")
+                     f"[{r['ci95_low']:.3f}, {r['ci95_high']:.3f}] | {r['final_iqm']:.3f} | "
+                     f"[{r['iqm_ci95_low']:.3f}, {r['iqm_ci95_high']:.3f}] | "
+                     f"{r['updates_to_90pct']:.0f} | {fails} |")
+    return "\n".join(lines)
+
+
+def comparisons_markdown(rows: list[dict]) -> str:
+    lines = ["| X | Y | P(X > Y) | 95% CI (bootstrap) |", "|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['x']} | {r['y']} | {r['p_improvement']:.2f} | "
+                     f"[{r['ci95_low']:.2f}, {r['ci95_high']:.2f}] |")
     return "\n".join(lines)
 
 
@@ -259,10 +464,17 @@ def plot_fig5(results: dict[str, np.ndarray], out_dir: str) -> list[str]:
         ax.set_title(f"{panel} mean and 95% CI over {data.shape[1]} seeds")
         fig.tight_layout()
         path = os.path.join(out_dir, name)
-        fig.savefig(path, dpi=120)
+        buf = io.BytesIO()
+        fig.savefig(buf, dpi=120, format="png")
         plt.close(fig)
+        _atomic_write_bytes(path, buf.getvalue())
         paths.append(path)
     return paths
+
+
+# ------------------------------------------------------------------------------------------------
+# The whole reproduction, in one pass.
+# ------------------------------------------------------------------------------------------------
 
 
 def reproduce(
@@ -271,64 +483,50 @@ def reproduce(
     methods: Sequence[str] = config_lib.METHODS,
     out_dir: str = "results/paper",
     *,
+    dtype: str = "float64",
     chunk_size: int = 50,
     num_devices: int | None = None,
     max_chunks: int | None = None,
     overrides: dict | None = None,
     progress: Callable[[str], None] = _log,
 ) -> dict:
-    """Runs every method for every seed and writes results.npz, config.json, summary.csv, Fig. 5.
+    """Runs every method for every seed and writes results.npz, config.json, summary.csv,
+    comparisons.csv and Fig. 5 to `out_dir`.
 
-    Returns a dict with the summary rows and the output paths; `complete` is False when
-    `max_chunks` stopped a method early (then nothing but checkpoints is written).
+    Returns a dict with the summary and comparison rows, their markdown tables and the output
+    paths; `complete` is False when `max_chunks` stopped a method early (then nothing but
+    checkpoints is written).
     """
+    seeds = list(map(int, seeds))
     os.makedirs(out_dir, exist_ok=True)
     mesh = make_mesh(num_devices)
-    cfgs = {m: config_lib.preset(preset, method=m, **(overrides or {})) for m in methods}
-    with open(os.path.join(out_dir, "config.json"), "w") as f:
-        json.dump({"preset": preset, "seeds": list(map(int, seeds)), "chunk_size": chunk_size,
-                   "devices": [str(d) for d in mesh.devices.flat],
-                   "methods": {m: c.to_json_dict() for m, c in cfgs.items()}}, f, indent=2)
+    cfgs = {m: config_lib.preset(preset, method=m, dtype=dtype, **(overrides or {})) for m in methods}
+    atomic_write_text(os.path.join(out_dir, "config.json"), json.dumps(
+        {"preset": preset, "seeds": seeds, "chunk_size": chunk_size, "dtype": dtype,
+         "devices": [str(d) for d in mesh.devices.flat],
+         "methods": {m: c.to_json_dict() for m, c in cfgs.items()}}, indent=2))
 
-    # The GP hyperparameters depend only on the seed (initial policy and its data), so they are
-    # fitted once per seed and shared by the GP methods.
-    kernels = None
     gp_methods = [m for m in methods if cfgs[m].uses_gp]
-    if gp_methods:
-        kpath = os.path.join(out_dir, "kernels.npz")
-        cfg0 = cfgs[gp_methods[0]]
-        fit = jax.jit(jax.vmap(train_lib.make_train(cfg0).fit_kernel_for_seed))
-        if os.path.exists(kpath):
-            with np.load(kpath) as f:
-                if list(f["seeds"]) == list(seeds) and "prior_mean" in f.files:
-                    fields = train_lib.kernels.KernelParams._fields
-                    kernels = train_lib.GPPrior(
-                        train_lib.kernels.KernelParams(*(f[k] for k in fields)), f["prior_mean"])
-        if kernels is None:
-            t0 = time.perf_counter()
-            fitted = fit(_shard(seed_keys(pad_seeds(seeds, mesh.devices.size)), mesh))
-            kernels = jax.tree_util.tree_map(lambda x: np.asarray(x)[: len(seeds)], jax.device_get(fitted))
-            np.savez(kpath, seeds=np.asarray(seeds), prior_mean=kernels.mean,
-                     **kernels.kernel._asdict())
-            progress(f"hyperparameter fit for {len(seeds)} seeds: {time.perf_counter() - t0:.1f}s")
+    priors = fit_priors(cfgs[gp_methods[0]], seeds, out_dir, mesh, progress) if gp_methods else None
 
-    results = {k: [] for k in RECORD_FIELDS}
-    complete = True
+    records = {}
     for m in methods:
-        recs, _ = run_method(cfgs[m], seeds, out_dir, chunk_size=chunk_size, mesh=mesh,
-                             kernels=kernels if cfgs[m].uses_gp else None,
-                             max_chunks=max_chunks, progress=progress)
-        if recs["mean_reward"].shape[1] < cfgs[m].num_updates:
-            complete = False
-            continue
-        for k in RECORD_FIELDS:
-            results[k].append(recs[k])
-    if not complete:
-        return {"complete": False}
-    arrays = {k: np.stack(v) for k, v in results.items()}
-    np.savez(os.path.join(out_dir, "results.npz"), methods=np.asarray(methods),
-             seeds=np.asarray(seeds), **arrays)
-    rows = summarise(arrays["mean_reward"], methods)
-    write_summary_csv(rows, os.path.join(out_dir, "summary.csv"))
+        rec, _ = run_method(cfgs[m], seeds, out_dir, chunk_size=chunk_size, mesh=mesh,
+                            kernels=priors if cfgs[m].uses_gp else None,
+                            max_chunks=max_chunks, progress=progress)
+        if rec["mean_reward"].shape[1] < cfgs[m].num_updates:
+            return {"complete": False}
+        records[m] = rec
+
+    arrays = {k: np.stack([records[m][k] for m in methods]) for k in RECORD_FIELDS}
+    atomic_savez(os.path.join(out_dir, "results.npz"), methods=np.asarray(methods),
+                 seeds=np.asarray(seeds), **arrays)
+    rows = summarise(records, zero_torque_reward(cfgs[methods[0]]))
+    comparisons = compare(records)
+    write_csv(rows, os.path.join(out_dir, "summary.csv"))
+    if comparisons:
+        write_csv(comparisons, os.path.join(out_dir, "comparisons.csv"))
     figs = plot_fig5({"methods": list(methods), **arrays}, out_dir)
-    return {"complete": True, "summary": rows, "figures": figs, "markdown": summary_markdown(rows)}
+    return {"complete": True, "summary": rows, "comparisons": comparisons, "figures": figs,
+            "markdown": summary_markdown(rows)
+            + ("\n\n" + comparisons_markdown(comparisons) if comparisons else "")}

@@ -1,17 +1,80 @@
-"""Sparse online Gaussian process (Csato & Opper) with fixed-size basis-vector buffers (SPEC §2).
+"""Sparse online Gaussian process (Csato & Opper) in square-root form, on fixed-size buffers (SPEC §2).
 
-Convention: the latent predictive variance is sigma^2(x) = k(x, x) + k(x)^T C k(x) with C negative
-semi-definite (Csato-Opper sign; the paper writes C with the opposite sign).
+The model (paper eq. 5-8, 10-15)
+--------------------------------
+The GP over inputs x in R^D has a constant prior mean m0 and the ARD squared-exponential kernel k.
+Its posterior is represented through a set B of at most M basis vectors (BVs) b_1..b_n:
 
-Buffers have M + 1 slots (capacity M, plus one slot so that a new point can be inserted before the
-KL-optimal deletion). An inactive slot has mask False, alpha 0 and zero rows/columns in C and Q.
+    mean      mu(x)      = m0 + k(x)^T alpha
+    variance  sigma^2(x) = k** + k(x)^T C k(x),       k(x) = k(B, x),  k** = k(x, x),
 
-float32: the recursion keeps Q = K_B^{-1} and C ~ -(K_B + sigma_n^2 I)^{-1} by rank-one updates, so
-Q + C (whose diagonal enters the deletion score) is a difference of nearly equal numbers when
-sigma_n^2 << sigma_f^2 and K_B is ill-conditioned. In float32 this loses positive
-semi-definiteness after a few thousand updates on pendulum-like data and the state stops being
-accurate; the guards in `update` keep it finite (no inf/NaN ever enters the state), but float64,
-the package default, is what gives correct numbers.
+with alpha the mean coefficients and C the (negative semi-definite) covariance correction in
+Csato & Opper's sign convention (the paper writes C with the opposite sign). Q = K_B^{-1} is the
+inverse Gram matrix of the BVs. alpha = K_B^{-1} f_B is the BV values mapped to coefficients, so
+the posterior over alpha is Gaussian with covariance Q + C. That is what this module stores:
+
+    T  ("gram_inv_root"):  T^T T = Q = K_B^{-1}
+    Z  ("alpha_cov_root"): Z^T Z = Q + C = Cov[alpha]  (the posterior covariance of alpha)
+
+so that, with w = T k and z = Z k,
+
+    sigma^2(x) = gamma(x) + |z|^2,      gamma(x) = k** - |w|^2 = k** - k^T Q k >= 0,
+
+the Nystrom residual of x (the prior variance of f(x) that the BVs do not explain, eq. 10-11) plus
+a sum of squares. The variance is non-negative by construction: gamma is a difference of two
+numbers, so it is clipped at 0 (its exact value is >= 0 and its rounding error is a few ulps of
+k**), and |z|^2 is a sum of squares. Neither T nor Z is triangular; any square roots will do, and
+orthogonal transformations of their rows leave every prediction unchanged. C = Z^T Z - T^T T and
+Q = T^T T are available for analysis (`covariance_correction`, `gram_inverse`), never needed.
+
+One update with a pair (x, y), in the paper's named steps:
+
+1. project (eq. 10-11): k = k(B, x), w = T k, gamma = k** - |w|^2, e = Q k = T^T w (the
+   coefficients of the projection of x onto the BVs).
+2. insert (if x is novel, see below): x goes into a free slot j. In the new BV set,
+   T gains the row t = (e_j - e)/sqrt(gamma) (then T^T T is the inverse of the bordered Gram
+   matrix, Q_new = [[Q, 0], [0, 0]] + [e; -1][e; -1]^T / gamma, as in SPEC §2), and so does Z:
+   the value of f at x is not yet observed, so Cov[alpha] grows by exactly the same t t^T
+   (C is padded with zeros in Csato-Opper). The kernel vector of x becomes k + k** e_j.
+3. observe (eq. 7-8): the GP takes in y = f(x) + noise, f(x) ~ k^T alpha. This is a Bayesian
+   update of the Gaussian over alpha with a scalar observation, done in Potter's square-root form:
+       z = Z k, d = sigma_n^2 + |z|^2, g = Z^T z = Cov[alpha] k,
+       alpha <- alpha + g (y - mu(x)) / d,
+       Z     <- (I - beta z z^T) Z,       beta = 1 / (d + sqrt(d sigma_n^2)),
+   which gives Z^T Z <- Z^T Z - g g^T / d exactly. The gain 1/d is at most 1/sigma_n^2 whatever
+   rounding does, the prediction at x moves towards y by the fraction |z|^2/d < 1 (it cannot
+   overshoot), and (I - beta z z^T) is a contraction, so Z never grows. This is the
+   Csato-Opper update: after an insertion d = sigma_n^2 + sigma^2(x) (their q, r); for a
+   projected point d = sigma_n^2 + sigma^2(x) - gamma (their eta = 1/(1 + gamma r)).
+4. score (eq. 12-15): eps_i = alpha_i^2 / (Q + C)_ii + lambda g(t_i), with (Q + C)_ii = |Z e_i|^2
+   the posterior variance of alpha_i.
+5. delete (KL-optimal, eq. 13): removing BV j is conditioning the posterior over alpha on
+   alpha_j = 0 (Csato-Opper's alpha_hat, C_hat and Q_hat are exactly that conditioning applied to
+   Cov[alpha] = Q + C and to the prior covariance Q), then dropping slot j:
+       alpha <- alpha - Cov[alpha] e_j alpha_j / Cov[alpha]_jj,
+       X <- H X, then row j and column j of X set to 0   (X = Z and X = T),
+   where H is the Householder reflection taking the unit vector X e_j / |X e_j| to +-e_j: the
+   conditioning leaves X with a null direction, H turns it into row j, which is freed for the next
+   insertion. This is an O(M^2) rank-one write, orthogonal, so it cannot amplify rounding errors.
+
+Novelty and conditioning (what keeps K_B well conditioned, SPEC §2 "Stability")
+----------------------------------------------------------------------------
+x joins the set only if gamma >= gamma_min, where
+    gamma_min = max(novelty_tol * k**, resolution(dtype) * k**, noise_novelty * sigma_n^2):
+a relative tolerance; the dtype's resolution (1e-6 in float64, 1e-3 in float32: gamma is a
+difference of numbers of size k**, so a threshold near the rounding level would admit duplicates);
+and a fraction of the noise variance (a point whose residual is far below the noise adds almost
+nothing as a BV that its projection does not already give). Every BV also keeps a leave-one-out
+residual 1/Q_ii >= collapse_fraction * gamma_min: an insertion that would push one existing BV
+below it deletes that BV (it has "collapsed" onto the others) instead of the lowest-scoring one,
+and an insertion that would push two or more below it is refused (the point gets the projected
+update). So after every update 1/Q_ii >= collapse_fraction * gamma_min for every BV, hence
+lambda_min(K_B) >= collapse_fraction * gamma_min / n and cond(K_B) <= n^2 k** /
+(collapse_fraction * gamma_min), a bound the tests check.
+
+Buffers have M + 1 slots (room for an insertion before the deletion); an inactive slot has mask
+False, alpha 0 and zero rows and columns in T and Z. Non-finite x or y (or valid=False) leaves the
+state unchanged. Everything is branch-free (`jnp.where`), jit- and vmap-able, O(M^2) per update.
 """
 
 import math
@@ -27,24 +90,46 @@ class SparseGPState(NamedTuple):
     """State of the online sparse GP. S = capacity + 1 slots, D = input dimension.
 
     Attributes:
-      basis_vectors: (S, D) inputs of the basis vectors (rows of inactive slots are ignored).
-      alpha: (S,) posterior mean coefficients; mu(x) = k(B, x)^T alpha.
-      C: (S, S) negative semi-definite posterior covariance correction.
-      Q: (S, S) inverse Gram matrix K_B^{-1} of the active basis vectors.
-      timestamps: (S,) int32 index of the policy update during which each BV was added.
+      basis_vectors: (S, D) inputs of the basis vectors (rows of inactive slots are 0).
+      alpha: (S,) posterior mean coefficients; mu(x) = m0 + k(B, x)^T alpha.
+      gram_inv_root: (S, S) T with T^T T = Q = K_B^{-1} (rows: whitened coordinates, columns: slots).
+      alpha_cov_root: (S, S) Z with Z^T Z = Q + C = Cov[alpha], the posterior covariance of alpha.
+      timestamps: (S,) int32 index of the policy update during which each BV was added (eq. 12).
       mask: (S,) bool, True for active slots.
-      prior_mean: () constant prior mean m0 of the GP: mu(x) = m0 + k(B, x)^T alpha. Returns
-        here are all negative; with a zero prior mean the GP would revert to 0 (an optimistic
-        value) away from the data, which biases a Q-based gradient towards unexplored actions.
+      prior_mean: () constant prior mean m0. Returns here are all negative; with a zero prior mean
+        the GP would revert to 0 (an optimistic value) away from the data, which biases a Q-based
+        gradient towards unexplored actions.
     """
 
     basis_vectors: jax.Array
     alpha: jax.Array
-    C: jax.Array
-    Q: jax.Array
+    gram_inv_root: jax.Array
+    alpha_cov_root: jax.Array
     timestamps: jax.Array
     mask: jax.Array
     prior_mean: jax.Array = 0.0
+
+
+class Projection(NamedTuple):
+    """Step 1 (eq. 10-11): x against the current BV set. S = number of slots.
+
+    Attributes:
+      k: (S,) k(B, x), 0 on inactive slots.
+      kxx: () k(x, x).
+      w: (S,) T k, the whitened kernel vector; |w|^2 = k^T Q k.
+      gamma: () k** - |w|^2, the novelty (Nystrom residual; unclipped, may be a rounding-level
+        negative number).
+      e_hat: (S,) Q k = T^T w, the projection coefficients of x onto the BVs.
+    """
+
+    k: jax.Array
+    kxx: jax.Array
+    w: jax.Array
+    gamma: jax.Array
+    e_hat: jax.Array
+
+
+AGE_FUNCTIONS = ("exp", "logit")
 
 
 def init(capacity: int, input_dim: int, dtype=None, prior_mean=0.0) -> SparseGPState:
@@ -54,44 +139,12 @@ def init(capacity: int, input_dim: int, dtype=None, prior_mean=0.0) -> SparseGPS
     return SparseGPState(
         basis_vectors=jnp.zeros((slots, input_dim), dtype),
         alpha=jnp.zeros((slots,), dtype),
-        C=jnp.zeros((slots, slots), dtype),
-        Q=jnp.zeros((slots, slots), dtype),
+        gram_inv_root=jnp.zeros((slots, slots), dtype),
+        alpha_cov_root=jnp.zeros((slots, slots), dtype),
         timestamps=jnp.zeros((slots,), jnp.int32),
         mask=jnp.zeros((slots,), bool),
         prior_mean=jnp.asarray(prior_mean, dtype),
     )
-
-
-def masked_kernel_vector(state: SparseGPState, x: jax.Array, hyper: kernels.KernelParams):
-    """k(B, x) with inactive slots set to 0: (S,)."""
-    k = kernels.cross_covariance(state.basis_vectors, x, hyper)
-    return jnp.where(state.mask, k, jnp.zeros_like(k))
-
-
-def predict(state: SparseGPState, x: jax.Array, hyper: kernels.KernelParams):
-    """Predictive mean (eq. 5) and latent variance (eq. 6, Csato-Opper sign) at one input x (D,).
-
-    Returns:
-      (mean, latent_variance), both scalars; the variance is clipped to [0, k(x, x)].
-    """
-    k = masked_kernel_vector(state, x, hyper)
-    kxx = kernels.kernel_diag(x, hyper)
-    mean = state.prior_mean + k @ state.alpha
-    var = kxx + k @ (state.C @ k)
-    return mean, jnp.clip(var, 0.0, kxx)
-
-
-AGE_FUNCTIONS = ("exp", "logit")
-
-
-def default_novelty_tol(dtype) -> float:
-    """1e-6 of k(x, x) in float64 (Csato's usual value), 1e-3 in float32 (keeps Q conditioned)."""
-    return 1e-6 if jnp.dtype(dtype) == jnp.float64 else 1e-3
-
-
-def default_variance_floor(dtype) -> float:
-    """Absolute floor on the latent variance: 1e-12 (float64) or 1e-6 (float32)."""
-    return 1e-12 if jnp.dtype(dtype) == jnp.float64 else 1e-6
 
 
 def num_basis_vectors(state: SparseGPState) -> jax.Array:
@@ -102,6 +155,127 @@ def num_basis_vectors(state: SparseGPState) -> jax.Array:
 def capacity(state: SparseGPState) -> int:
     """The static budget M (the buffers have M + 1 slots)."""
     return state.alpha.shape[-1] - 1
+
+
+def masked_kernel_vector(state: SparseGPState, x: jax.Array, hyper: kernels.KernelParams):
+    """k(B, x) with inactive slots set to 0: (S,)."""
+    k = kernels.cross_covariance(state.basis_vectors, x, hyper)
+    return jnp.where(state.mask, k, jnp.zeros_like(k))
+
+
+def _cast_hyper(hyper: kernels.KernelParams, dtype) -> kernels.KernelParams:
+    return jax.tree.map(lambda a: jnp.asarray(a, dtype), hyper)
+
+
+def predict(state: SparseGPState, x: jax.Array, hyper: kernels.KernelParams):
+    """Predictive mean (eq. 5) and latent variance (eq. 6) at one input x (D,).
+
+    Returns:
+      (mean, latent_variance), scalars; variance = max(k** - |T k|^2, 0) + |Z k|^2 >= 0.
+    """
+    hyper = _cast_hyper(hyper, state.alpha.dtype)
+    k = masked_kernel_vector(state, x, hyper)
+    w = state.gram_inv_root @ k
+    z = state.alpha_cov_root @ k
+    gamma = kernels.kernel_diag(x, hyper) - w @ w
+    mean = state.prior_mean + k @ state.alpha
+    return mean, jnp.maximum(gamma, 0.0) + z @ z
+
+
+def gram_inverse(state: SparseGPState) -> jax.Array:
+    """Q = K_B^{-1} = T^T T, (S, S), 0 on inactive slots (for analysis and tests; O(M^3))."""
+    T = state.gram_inv_root
+    return T.T @ T
+
+
+def alpha_covariance(state: SparseGPState) -> jax.Array:
+    """Cov[alpha] = Q + C = Z^T Z, (S, S) (for analysis and tests; O(M^3))."""
+    Z = state.alpha_cov_root
+    return Z.T @ Z
+
+
+def covariance_correction(state: SparseGPState) -> jax.Array:
+    """Csato-Opper's C = Z^T Z - T^T T (negative semi-definite), (S, S); O(M^3)."""
+    return alpha_covariance(state) - gram_inverse(state)
+
+
+def exact_state(
+    xs: jax.Array,
+    ys: jax.Array,
+    hyper: kernels.KernelParams,
+    *,
+    capacity: int | None = None,
+    num_active=None,
+    prior_mean=0.0,
+    jitter=0.0,
+) -> SparseGPState:
+    """The full (exact) GP on the points xs as a `SparseGPState`, built by eigendecomposition.
+
+    Independent of the online recursion: alpha = (K + sigma_n^2 I)^{-1} (y - m0),
+    Cov[alpha] = K^{-1} - (K + sigma_n^2 I)^{-1} = U diag(sigma_n^2 / (l (l + sigma_n^2))) U^T and
+    K^{-1} = U diag(1/l) U^T for K = U diag(l) U^T. For tests, notebooks and figures.
+
+    Args:
+      xs: (N, D) inputs (all become basis vectors; K must be non-singular).
+      ys: (N,) targets.
+      hyper: kernel hyperparameters.
+      capacity: buffer capacity M >= N (default N).
+      num_active: optional (traceable) number of leading points that are active (default N).
+      prior_mean: constant prior mean m0.
+      jitter: added to the diagonal of K for T and Z (for nearly singular K; alpha is exact).
+    """
+    n, d = xs.shape
+    dtype = xs.dtype
+    hyper = _cast_hyper(hyper, dtype)
+    slots = (n if capacity is None else capacity) + 1
+    if slots < n + 1:
+        raise ValueError(f"capacity must be >= the number of points, got {capacity} < {n}")
+    active = jnp.arange(n) < (n if num_active is None else num_active)
+    both = active[:, None] & active[None, :]
+    eye = jnp.eye(n, dtype=dtype)
+    gram = jnp.where(both, kernels.gram(xs, xs, hyper), eye)
+    lam, U = jnp.linalg.eigh(gram)
+    sn2 = hyper.noise_variance
+    r = jnp.asarray(ys, dtype) - prior_mean
+    alpha = U @ ((U.T @ jnp.where(active, r, 0.0)) / (lam + sn2))
+    lam_j = lam + jitter
+    T = jnp.where(both, (U / jnp.sqrt(lam_j)).T, 0.0)
+    Z = jnp.where(both, (U * jnp.sqrt(sn2 / (lam_j * (lam_j + sn2)))).T, 0.0)
+
+    def pad(a, shape):
+        return jnp.zeros(shape, dtype).at[tuple(slice(0, s) for s in a.shape)].set(a)
+
+    return SparseGPState(
+        basis_vectors=pad(jnp.where(active[:, None], xs, 0.0), (slots, d)),
+        alpha=pad(jnp.where(active, alpha, 0.0), (slots,)),
+        gram_inv_root=pad(T, (slots, slots)),
+        alpha_cov_root=pad(Z, (slots, slots)),
+        timestamps=jnp.zeros((slots,), jnp.int32),
+        mask=jnp.zeros((slots,), bool).at[:n].set(active),
+        prior_mean=jnp.asarray(prior_mean, dtype),
+    )
+
+
+# ------------------------------------------------------------------------------------------------
+# Novelty threshold and age penalty.
+# ------------------------------------------------------------------------------------------------
+
+
+def resolution(dtype) -> float:
+    """The smallest relative novelty gamma / k** the dtype can resolve safely: 1e-6 (float64),
+    1e-3 (float32). gamma = k** - |w|^2 is a difference of numbers of size k**."""
+    return 1e-6 if jnp.dtype(dtype) == jnp.float64 else 1e-3
+
+
+def novelty_threshold(hyper: kernels.KernelParams, dtype, novelty_tol=0.0, noise_novelty=0.01):
+    """gamma_min = max(novelty_tol k**, resolution(dtype) k**, noise_novelty sigma_n^2).
+
+    A point with gamma >= gamma_min joins the BV set (eq. 10); every BV keeps a leave-one-out
+    residual >= collapse_fraction * gamma_min. See the module notes.
+    """
+    sf2 = jnp.asarray(hyper.signal_variance, dtype)
+    rel = jnp.maximum(jnp.asarray(novelty_tol, dtype), resolution(dtype))
+    return jnp.maximum(rel * sf2, jnp.asarray(noise_novelty, dtype) * hyper.noise_variance)
 
 
 def age_function(
@@ -145,50 +319,162 @@ def age_function(
     return jnp.where(mask, g, 0.0)
 
 
-def update(
+# ------------------------------------------------------------------------------------------------
+# The update, in the paper's steps: project, insert, observe, score, delete.
+# ------------------------------------------------------------------------------------------------
+
+
+def project(state: SparseGPState, x: jax.Array, hyper: kernels.KernelParams) -> Projection:
+    """Step 1 (eq. 10-11): kernel vector, whitened kernel vector, novelty and projection of x."""
+    T = state.gram_inv_root
+    k = masked_kernel_vector(state, x, hyper)
+    kxx = kernels.kernel_diag(x, hyper)
+    w = T @ k
+    return Projection(k=k, kxx=kxx, w=w, gamma=kxx - w @ w, e_hat=w @ T)
+
+
+def leave_one_out_precision(state: SparseGPState) -> jax.Array:
+    """Q_ii = |T e_i|^2 = 1 / (residual variance of BV i given the other BVs): (S,), 0 if inactive."""
+    T = state.gram_inv_root
+    return jnp.sum(T * T, axis=0)
+
+
+def insert(state: SparseGPState, x, proj: Projection, timestamp, add) -> tuple[SparseGPState, jax.Array]:
+    """Step 2: x becomes a BV in the first free slot j if `add` (traced bool).
+
+    T and Z both gain the row t = (e_j - e_hat) / sqrt(gamma) (see the module notes).
+
+    Returns:
+      (state, k_obs): the new state and the kernel vector of x against it (k + k** e_j if added).
+    """
+    dtype = state.alpha.dtype
+    slots = jnp.arange(state.alpha.shape[0])
+    j = jnp.argmin(state.mask)  # the first free slot; one always exists (at most M of M+1 active)
+    onehot = (slots == j) & add
+    inv_sqrt_gamma = jax.lax.rsqrt(jnp.where(add, proj.gamma, 1.0))
+    row = (onehot.astype(dtype) - proj.e_hat) * inv_sqrt_gamma
+
+    def set_row(X):
+        return X.at[j].set(jnp.where(add, row, X[j]))
+
+    new = state._replace(
+        basis_vectors=state.basis_vectors.at[j].set(jnp.where(add, x, state.basis_vectors[j])),
+        gram_inv_root=set_row(state.gram_inv_root),
+        alpha_cov_root=set_row(state.alpha_cov_root),
+        timestamps=jnp.where(onehot, jnp.asarray(timestamp, jnp.int32), state.timestamps),
+        mask=state.mask | onehot,
+    )
+    return new, proj.k + jnp.where(onehot, proj.kxx, 0.0)
+
+
+def observe(state: SparseGPState, k_obs, y, noise_variance, ok) -> SparseGPState:
+    """Step 3 (eq. 7-8): Bayesian update of alpha's Gaussian with y = k_obs^T alpha + noise, in
+    Potter's square-root form (module notes). Skipped (state unchanged) where `ok` is False."""
+    Z = state.alpha_cov_root
+    z = Z @ k_obs
+    g = z @ Z  # Cov[alpha] k_obs
+    d = noise_variance + z @ z
+    residual = y - state.prior_mean - k_obs @ state.alpha
+    gain = jnp.where(ok, residual / d, 0.0)
+    beta = jnp.where(ok, 1.0 / (d + jnp.sqrt(d * noise_variance)), 0.0)
+    return state._replace(
+        alpha=state.alpha + gain * g,
+        alpha_cov_root=Z - (beta * z)[:, None] * g[None, :],
+    )
+
+
+def scores(state: SparseGPState, age_penalty=0.0, age_scale=1.0, age_fn: str = "exp",
+           logit_eps=1e-3) -> jax.Array:
+    """Step 4 (eq. 13): eps_i = alpha_i^2 / (Q + C)_ii + lambda g(t_i); +inf on inactive slots.
+
+    (Q + C)_ii = |Z e_i|^2 is the posterior variance of alpha_i (a sum of squares); the KL term
+    alpha_i^2 / (Q + C)_ii is the squared mean over the variance of the coefficient that a
+    deletion sets to 0.
+    """
+    dtype = state.alpha.dtype
+    Z = state.alpha_cov_root
+    var_alpha = jnp.sum(Z * Z, axis=0)
+    kl = jnp.where(var_alpha > 0, state.alpha**2 / jnp.where(var_alpha > 0, var_alpha, 1.0), jnp.inf)
+    g = age_function(state.timestamps, state.mask, jnp.asarray(age_scale, dtype), age_fn,
+                     jnp.asarray(logit_eps, dtype))
+    return jnp.where(state.mask, kl + jnp.asarray(age_penalty, dtype) * g, jnp.inf)
+
+
+def _reflect_out(X: jax.Array, j, do) -> jax.Array:
+    """H X with the Householder H taking X e_j / |X e_j| to +-e_j (identity where `do` is False)."""
+    col = X[:, j]
+    norm = jnp.sqrt(col @ col)
+    unit = col / jnp.where(norm > 0, norm, 1.0)
+    sign = jnp.where(unit[j] < 0, -1.0, 1.0).astype(X.dtype)
+    v = unit.at[j].add(sign)  # |v|^2 = 2 (1 + |unit_j|), in [2, 4]
+    coef = jnp.where(do & (norm > 0), 1.0 / (1.0 + jnp.abs(unit[j])), 0.0)
+    return X - (coef * v)[:, None] * (v @ X)[None, :]
+
+
+def delete(state: SparseGPState, j, do) -> SparseGPState:
+    """Step 5 (KL-optimal deletion, eq. 13): condition alpha's Gaussian on alpha_j = 0 and remove
+    slot j (module notes); nothing happens where `do` (traced bool) is False."""
+    Z, T, alpha = state.alpha_cov_root, state.gram_inv_root, state.alpha
+    cov_row = Z[:, j] @ Z  # Cov[alpha] e_j
+    var_j = cov_row[j]
+    shift = jnp.where(do & (var_j > 0), alpha[j] / jnp.where(var_j > 0, var_j, 1.0), 0.0)
+    slots = jnp.arange(alpha.shape[0])
+    keep = state.mask & ~(do & (slots == j))
+    keep2 = keep[:, None] & keep[None, :]
+    return state._replace(
+        basis_vectors=jnp.where(keep[:, None], state.basis_vectors, 0.0),
+        alpha=jnp.where(keep, alpha - shift * cov_row, 0.0),
+        gram_inv_root=jnp.where(keep2, _reflect_out(T, j, do), 0.0),
+        alpha_cov_root=jnp.where(keep2, _reflect_out(Z, j, do), 0.0),
+        timestamps=jnp.where(keep, state.timestamps, 0),
+        mask=keep,
+    )
+
+
+class UpdateInfo(NamedTuple):
+    """What one `update` did (for diagnostics and tests).
+
+    Attributes:
+      added: () bool, x joined the BV set (in slot `inserted_slot`).
+      inserted_slot: () int32, the slot x was written to (-1 if not added).
+      deleted_slot: () int32, the slot deleted by step 5 (-1 if none; may equal inserted_slot).
+      collapse: () bool, the deletion removed a collapsed BV (not the lowest score).
+    """
+
+    added: jax.Array
+    inserted_slot: jax.Array
+    deleted_slot: jax.Array
+    collapse: jax.Array
+
+
+def update(state, x, y, hyper, timestamp, **kwargs) -> SparseGPState:
+    """Takes in one pair (x, y); `update_with_info` without the info (see there)."""
+    return update_with_info(state, x, y, hyper, timestamp, **kwargs)[0]
+
+
+def update_with_info(
     state: SparseGPState,
     x: jax.Array,
     y: jax.Array,
     hyper: kernels.KernelParams,
     timestamp,
     *,
-    novelty_tol=None,
+    novelty_tol=0.0,
+    noise_novelty=0.01,
+    collapse_fraction=0.5,
     age_penalty=0.0,
     age_scale=1.0,
     age_fn: str = "exp",
-    variance_floor=None,
     logit_eps=1e-3,
     valid=True,
 ) -> SparseGPState:
-    """Takes in one pair (x, y): the Csato-Opper online update with age-penalised sparsification.
+    """One pair (x, y): project, insert if novel, observe, score, delete (SPEC §2), and what it did.
 
-    SPEC §2 / paper eq. 5-8 and 10-15. With k = k(B, x), m = k^T alpha, v = max(k** + k^T C k,
-    floor), q = (y - m)/(sigma_n^2 + v), r = -1/(sigma_n^2 + v), e = Q k, gamma = k** - k^T e:
-
-    * if gamma >= tol k** the point joins the BV set in the first free slot j:
-      s = C k + 1_j, alpha += q s, C += r s s^T, Q += (e - 1_j)(e - 1_j)^T / gamma
-      (the SPEC's [alpha; 0] + q [Ck; 1] etc. written on fixed buffers); if the set then holds
-      M + 1 vectors, the one with the lowest score alpha_i^2/(Q_ii + C_ii) + lambda g(t_i)
-      (eq. 13) is removed by the KL-optimal deletion, the new point included among the candidates;
-    * otherwise the projected update: s = C k + e, eta = 1/(1 + gamma r), alpha += q eta s,
-      C += r eta s s^T.
-
-    The insertion and the deletion are fused into one pass over C and Q: the deletion's column j*
-    and diagonals are taken from the rank-one-updated matrices without forming them, so an update
-    costs two matrix-vector products and one rank-three write of C and Q, O(M^2), no O(M^3) work.
-
-    Guards (all branch-free): a non-finite x or y, or ``valid=False``, leaves the state unchanged
-    (the pair is SKIPPED; it never reaches alpha or C); v is floored at max(gamma, floor) (exact
-    arithmetic gives v >= gamma since Q + C is PSD); gamma is compared with
-    max(novelty_tol, 10 eps) k** so that 1/gamma stays finite; in the projected update gamma is
-    clipped to [0, v] (exact arithmetic gives 0 <= gamma <= v, and this keeps eta in
-    [1, (sigma_n^2+v)/sigma_n^2]); a projected update along which Q + C has lost positive
-    semi-definiteness (v_raw < gamma, rounding only) leaves C unchanged; the denominators Q_jj and
-    Q_jj + C_jj of the score and the deletion are floored at eps / k** and 100 eps Q_jj; an entry of
-    alpha, C or Q that would overflow keeps its old value; inactive slots are zeroed after every
-    update. C and Q are kept bitwise symmetric by construction (every change is a sum of
-    +-a a^T terms formed elementwise), which is what an explicit symmetrisation would achieve,
-    without its extra pass over both matrices.
+    x is novel if gamma >= gamma_min (`novelty_threshold`) and inserting it would leave at most
+    one existing BV with a leave-one-out residual below collapse_fraction * gamma_min. After the
+    observation one BV is deleted if the set holds M + 1 vectors or a BV has collapsed: the
+    collapsed one if any, otherwise the one with the lowest score (eq. 13; the new point is among
+    the candidates). A non-finite x or y, or ``valid=False``, leaves the state unchanged.
 
     Args:
       state: the current `SparseGPState` (its dtype is the computation dtype).
@@ -196,130 +482,55 @@ def update(
       y: () target.
       hyper: kernel hyperparameters (cast to the state's dtype).
       timestamp: int, the policy-update index stored with x if it becomes a BV (traceable).
-      novelty_tol: relative novelty threshold (traceable); None: `default_novelty_tol(dtype)`.
+      novelty_tol: relative novelty tolerance (traceable); see `novelty_threshold`.
+      noise_novelty: fraction of sigma_n^2 below which a residual is not novel (traceable).
+      collapse_fraction: BVs keep 1/Q_ii >= collapse_fraction * gamma_min (traceable, in (0, 1]).
       age_penalty: lambda of eq. 13 (traceable); 0 is plain KL sparsification.
       age_scale: the constant c of eq. 14/15 (traceable).
       age_fn: ``"exp"`` (eq. 14) or ``"logit"`` (eq. 15); static.
-      variance_floor: absolute floor on v (traceable); None: `default_variance_floor(dtype)`.
       logit_eps: clipping of tau in eq. 15 (traceable).
       valid: bool (traceable); False skips the pair (for padded batches).
 
     Returns:
-      The updated state.
+      (state, info): the updated state and an `UpdateInfo`.
     """
     if age_fn not in AGE_FUNCTIONS:
         raise ValueError(f"age_fn must be one of {AGE_FUNCTIONS}, got {age_fn!r}")
     dtype = state.alpha.dtype
-    eps = float(jnp.finfo(dtype).eps)
-    num_slots = state.alpha.shape[0]
-    if novelty_tol is None:
-        novelty_tol = default_novelty_tol(dtype)
-    if variance_floor is None:
-        variance_floor = default_variance_floor(dtype)
-    hyper = jax.tree.map(lambda a: jnp.asarray(a, dtype), hyper)
+    hyper = _cast_hyper(hyper, dtype)
     x = jnp.asarray(x, dtype)
     y = jnp.asarray(y, dtype)
-    novelty_tol = jnp.maximum(jnp.asarray(novelty_tol, dtype), 10.0 * eps)
-
     ok = jnp.asarray(valid, bool) & jnp.all(jnp.isfinite(x)) & jnp.isfinite(y)
     x = jnp.where(ok, x, jnp.zeros_like(x))
     y = jnp.where(ok, y, jnp.zeros_like(y))
+    gamma_min = novelty_threshold(hyper, dtype, novelty_tol, noise_novelty)
+    max_precision = 1.0 / (jnp.asarray(collapse_fraction, dtype) * gamma_min)
 
-    C, Q, alpha, mask = state.C, state.Q, state.alpha, state.mask
-    k = masked_kernel_vector(state, x, hyper)
-    kxx = kernels.kernel_diag(x, hyper)
-    tiny = eps / kxx
-    Ck = C @ k
-    e_hat = Q @ k
-    gamma = kxx - k @ e_hat
-    # Q + C is PSD in exact arithmetic, so v >= gamma; flooring v there stops the feedback loop in
-    # which a rounding-negative v gives a huge r that drives C further negative (seen in float32).
-    v_raw = kxx + k @ Ck
-    v = jnp.maximum(jnp.maximum(v_raw, gamma), variance_floor)
-    # v_raw < gamma means rounding has made Q + C indefinite along k; shrinking C further along
-    # that direction feeds the divergence, so C is then left as it is for this projected update
-    # (alpha is still updated). Exact arithmetic never takes this branch.
-    psd_ok = v_raw >= gamma
-    denom = hyper.noise_variance + v
-    q = (y - state.prior_mean - k @ alpha) / denom
-    r = -1.0 / denom
+    proj = project(state, x, hyper)
+    # Leave-one-out precisions Q_ii after a would-be insertion: Q_ii + e_hat_i^2 / gamma.
+    gamma_safe = jnp.where(proj.gamma >= gamma_min, proj.gamma, 1.0)
+    precision_after = leave_one_out_precision(state) + proj.e_hat**2 / gamma_safe
+    would_collapse = jnp.sum(state.mask & (precision_after > max_precision))
+    add = ok & (proj.gamma >= gamma_min) & (would_collapse <= 1)
 
-    add = ok & (gamma >= novelty_tol * kxx)
-    slots = jnp.arange(num_slots)
-    new_slot = jnp.argmin(mask)  # first free slot; one always exists (at most M of M+1 active)
-    onehot_new = (slots == new_slot) & add
-    # Full update: s = Ck + 1_j; projected: s = Ck + e with q, r scaled by eta.
-    gamma_proj = jnp.clip(gamma, 0.0, v)
-    eta = 1.0 / (1.0 + gamma_proj * r)
-    s = Ck + jnp.where(add, onehot_new.astype(dtype), e_hat)
-    q_eff = jnp.where(ok, jnp.where(add, q, q * eta), 0.0)
-    r_eff = jnp.where(ok & (psd_ok | add), jnp.where(add, r, r * eta), 0.0)
-    u = e_hat - onehot_new.astype(dtype)
-    w_q = jnp.where(add, 1.0 / jnp.where(add, gamma, 1.0), 0.0)
+    mask_before = state.mask
+    state, k_obs = insert(state, x, proj, timestamp, add)
+    state = observe(state, k_obs, y, hyper.noise_variance, ok)
 
-    alpha1 = alpha + q_eff * s
-    mask1 = mask | onehot_new
-    timestamps1 = jnp.where(onehot_new, jnp.asarray(timestamp, jnp.int32), state.timestamps)
-
-    # Deletion (eq. 13 scores on the post-insertion GP, computed from diagonals only).
-    do_delete = add & (jnp.sum(mask) >= num_slots - 1)
-    diag_c1 = jnp.diagonal(C) + r_eff * s * s
-    diag_q1 = jnp.diagonal(Q) + w_q * u * u
-    # Q_ii + C_ii > 0 in exact arithmetic but is a difference of nearly equal numbers when the
-    # noise is small (C ~ -Q); it is floored at 100 eps Q_ii so that the deletion below never
-    # divides by a rounding-sized or negative number (this is what keeps float32 finite).
-    rel_floor = 100.0 * eps
-    score = alpha1 * alpha1 / jnp.maximum(diag_q1 + diag_c1, rel_floor * diag_q1 + tiny)
-    g = age_function(timestamps1, mask1, jnp.asarray(age_scale, dtype), age_fn, logit_eps)
-    score = score + jnp.asarray(age_penalty, dtype) * g
-    score = jnp.where(mask1, score, jnp.inf)
-    j_del = jnp.argmin(score)
-    # Column j* of the post-insertion Q and C (read as a row: contiguous, and C, Q are symmetric).
-    q_col = Q[j_del] + (w_q * u[j_del]) * u
-    c_col = C[j_del] + (r_eff * s[j_del]) * s
-    a_star = alpha1[j_del]
-    qc_col = q_col + c_col
-    w_del_q = jnp.where(do_delete, 1.0 / jnp.maximum(q_col[j_del], tiny), 0.0)
-    qc_floor = rel_floor * jnp.maximum(q_col[j_del], tiny) + tiny
-    w_del_qc = jnp.where(do_delete, 1.0 / jnp.maximum(qc_col[j_del], qc_floor), 0.0)
-    keep = mask1 & ~(do_delete & (slots == j_del))
-
-    alpha2 = jnp.where(keep, alpha1 - (a_star * w_del_qc) * qc_col, 0.0)
-    keep2 = keep[:, None] & keep[None, :]
-    # One fused pass each: insertion (rank one) + deletion (rank two for C, one for Q). Every
-    # weight has a known sign (r <= 0, 1/gamma >= 0, 1/q* > 0, 1/(q* + c*) > 0 after the guards),
-    # so each term is written as +-(a_i a_j) with a = sqrt(|w|) u: a product a_i a_j equals a_j a_i
-    # bitwise and no scalar factor is left for the compiler to re-associate, so C and Q stay
-    # exactly symmetric. This replaces the SPEC's explicit 0.5 (A + A^T), which would cost a
-    # transposed pass over both matrices (a third of the step time in the benchmark);
-    # `tests/test_sparse_gp.py` checks C == C^T and Q == Q^T bitwise after 5000 updates.
-    a_ins = jnp.sqrt(-r_eff) * s
-    b_del = jnp.sqrt(w_del_q) * q_col
-    c_del = jnp.sqrt(w_del_qc) * qc_col
-    d_ins = jnp.sqrt(w_q) * u
-    C2 = (
-        C
-        - a_ins[:, None] * a_ins[None, :]
-        + b_del[:, None] * b_del[None, :]
-        - c_del[:, None] * c_del[None, :]
+    precision = leave_one_out_precision(state)
+    collapsed = state.mask & (precision > max_precision)
+    eps = scores(state, age_penalty, age_scale, age_fn, logit_eps)
+    j = jnp.where(jnp.any(collapsed), jnp.argmax(jnp.where(collapsed, precision, -1.0)),
+                  jnp.argmin(eps))
+    over = jnp.sum(state.mask) > capacity(state)
+    do_delete = ok & (over | jnp.any(collapsed))
+    info = UpdateInfo(
+        added=add,
+        inserted_slot=jnp.where(add, jnp.argmin(mask_before), -1).astype(jnp.int32),
+        deleted_slot=jnp.where(do_delete, j, -1).astype(jnp.int32),
+        collapse=do_delete & jnp.any(collapsed),
     )
-    Q2 = Q + d_ins[:, None] * d_ins[None, :] - b_del[:, None] * b_del[None, :]
-    # Last-resort guard, fused into the same pass: an entry that would overflow keeps its old
-    # value, so no inf/NaN can enter the state even when float32 rounding has made the
-    # recursion diverge (see the module notes on float32).
-    C2 = jnp.where(keep2, jnp.where(jnp.isfinite(C2), C2, C), 0.0)
-    Q2 = jnp.where(keep2, jnp.where(jnp.isfinite(Q2), Q2, Q), 0.0)
-    alpha2 = jnp.where(jnp.isfinite(alpha2), alpha2, jnp.where(keep, alpha, 0.0))
-    basis_vectors = jnp.where(onehot_new[:, None], x[None, :], state.basis_vectors)
-    return SparseGPState(
-        basis_vectors=basis_vectors,
-        alpha=alpha2,
-        C=C2,
-        Q=Q2,
-        timestamps=timestamps1,
-        mask=keep,
-        prior_mean=state.prior_mean,
-    )
+    return delete(state, j, do_delete), info
 
 
 def update_batch(
@@ -331,8 +542,9 @@ def update_batch(
     *,
     valid=None,
     unroll: int = 1,
+    with_info: bool = False,
     **update_kwargs,
-) -> SparseGPState:
+):
     """Takes in N pairs one after the other (`update` under `lax.scan`).
 
     Args:
@@ -344,10 +556,11 @@ def update_batch(
       valid: optional (N,) bool; pairs with False are skipped (padding). Pairs with a non-finite
         input or target are skipped as well.
       unroll: `lax.scan` unroll factor (static).
+      with_info: also return the stacked `UpdateInfo` of every pair (static).
       **update_kwargs: keyword arguments of `update` (``age_fn`` static, the rest traceable).
 
     Returns:
-      The state after the N updates.
+      The state after the N updates (and, with `with_info`, an `UpdateInfo` with (N,) leaves).
     """
     n = xs.shape[0]
     timestamps = jnp.broadcast_to(jnp.asarray(timestamps, jnp.int32), (n,))
@@ -355,7 +568,70 @@ def update_batch(
 
     def body(carry, inputs):
         x, y, t, ok = inputs
-        return update(carry, x, y, hyper, t, valid=ok, **update_kwargs), None
+        new, info = update_with_info(carry, x, y, hyper, t, valid=ok, **update_kwargs)
+        return new, (info if with_info else None)
 
-    state, _ = jax.lax.scan(body, state, (xs, ys, timestamps, valid), unroll=unroll)
-    return state
+    state, infos = jax.lax.scan(body, state, (xs, ys, timestamps, valid), unroll=unroll)
+    return (state, infos) if with_info else state
+
+
+# ------------------------------------------------------------------------------------------------
+# Health of a state: invariants that hold in exact arithmetic and fail when the GP has diverged.
+# ------------------------------------------------------------------------------------------------
+
+
+class Health(NamedTuple):
+    """Invariant checks of a state (each a () bool, True = holds) and the numbers behind them.
+
+    Attributes:
+      finite: every entry of alpha, T, Z is finite.
+      posterior_below_prior: Cov[alpha]_ii <= (1 + tol) Q_ii for every BV (a posterior variance
+        cannot exceed the prior's; tol is 1e3 eps).
+      mean_in_range: at the given inputs, |mu(x) - y| <= (max y - min y) + margin_stds * sigma_f
+        for the given targets y (the GP has just taken them in).
+      max_variance_ratio: max_i Cov[alpha]_ii / Q_ii.
+      max_mean_error: max |mu(x) - y| over the given pairs.
+    """
+
+    finite: jax.Array
+    posterior_below_prior: jax.Array
+    mean_in_range: jax.Array
+    max_variance_ratio: jax.Array
+    max_mean_error: jax.Array
+
+    @property
+    def ok(self) -> jax.Array:
+        return self.finite & self.posterior_below_prior & self.mean_in_range
+
+
+def check(state: SparseGPState, hyper: kernels.KernelParams, xs, ys, valid=None,
+          margin_stds: float = 6.0) -> Health:
+    """Checks the invariants of `state` after it took in (xs, ys) (`Health`). O(N M + M^2).
+
+    A GP that has diverged while staying finite (alpha ~ 1e36) fails `mean_in_range`; one whose
+    covariance has lost its meaning fails `posterior_below_prior`.
+    """
+    dtype = state.alpha.dtype
+    hyper = _cast_hyper(hyper, dtype)
+    valid = jnp.ones(ys.shape, bool) if valid is None else valid
+    finite = (jnp.all(jnp.isfinite(state.alpha)) & jnp.all(jnp.isfinite(state.gram_inv_root))
+              & jnp.all(jnp.isfinite(state.alpha_cov_root)))
+    q = leave_one_out_precision(state)
+    Z = state.alpha_cov_root
+    v = jnp.sum(Z * Z, axis=0)
+    ratio = jnp.max(jnp.where(state.mask, v / jnp.where(q > 0, q, 1.0), 0.0))
+    tol = 1e3 * float(jnp.finfo(dtype).eps)
+    means = jax.vmap(lambda x: state.prior_mean + masked_kernel_vector(state, x, hyper) @ state.alpha)(
+        jnp.asarray(xs, dtype))
+    ys = jnp.asarray(ys, dtype)
+    y_hi = jnp.max(jnp.where(valid, ys, -jnp.inf))
+    y_lo = jnp.min(jnp.where(valid, ys, jnp.inf))
+    err = jnp.max(jnp.where(valid, jnp.abs(means - ys), 0.0))
+    margin = jnp.where(jnp.any(valid), y_hi - y_lo, 0.0) + margin_stds * jnp.sqrt(hyper.signal_variance)
+    return Health(
+        finite=finite,
+        posterior_below_prior=ratio <= 1.0 + tol,
+        mean_in_range=jnp.isfinite(err) & (err <= margin),
+        max_variance_ratio=ratio,
+        max_mean_error=err,
+    )

@@ -112,13 +112,15 @@ def summarise_sweep(param: str, values: Sequence[float], records: dict) -> list[
       records: dict field -> (V, S, num_updates), with at least mean_reward, fresh_bv_share and
         nonfinite_grad.
     """
-    rows = reproduce.summarise(records["mean_reward"], [str(v) for v in values])
+    rows = reproduce.summarise(
+        {str(v): {"mean_reward": records["mean_reward"][i]} for i, v in enumerate(values)})
     out = []
     for i, (v, r) in enumerate(zip(values, rows)):
-        r = dict(r)
-        r.pop("method")
+        r = {k: r[k] for k in ("seeds", "initial_mean", "final_mean", "ci95_low", "ci95_high",
+                               "updates_to_90pct")}
         r["fresh_bv_share_mean"] = float(np.mean(records["fresh_bv_share"][i]))
         r["seeds_with_skipped_updates"] = int(np.sum(np.any(records["nonfinite_grad"][i] > 0, axis=-1)))
+        r["seeds_with_gp_guard"] = int(np.sum(np.any(records["gp_guard"][i] > 0, axis=-1)))
         out.append({param: float(v), **r})
     return out
 

@@ -1,18 +1,24 @@
 """Algorithm 1 end to end as one pure function per seed: `make_train(config) -> train(key)`.
 
-One seed's run is nested `lax.scan`s: updates -> episodes -> steps. Per update (Algorithm 1):
+One seed's run is nested `lax.scan`s: updates -> episodes -> steps. One policy update (Algorithm 1)
+is, in order, the functions of this module:
 
-1. for each of the `episodes_per_update` episodes: act with the method's policy (the GP is held
-   fixed during an episode), then take the episode's (x_t, Ret_t) pairs into the sparse GP, each
-   stamped with the update index (eq. 12);
-2. estimate the gradient: REINFORCE (eq. 4) with returns-to-go, or eq. 9 with Q_GP(s_t, a_t) from
-   the GP after it has taken in this update's episodes; the score of each step is the hand-derived
+1. `rollout`: act with the method's policy for `episodes_per_update` episodes; the GP is held
+   fixed during an episode;
+2. `take_in_episode`: after each episode the GP takes in its (x_t, Ret_t) pairs, each stamped with
+   the update index (eq. 12), and a health check (`sparse_gp.check`) accepts or rejects the new
+   GP state (a rejected episode leaves the GP as it was and is counted in `gp_guard`);
+3. `gradient_estimate`: REINFORCE (eq. 4) with returns-to-go, or eq. 9 with Q_GP(s_t, a_t) from the
+   GP after it has taken in this update's episodes; each step's score is the hand-derived
    grad log pi of the policy that chose the action (eq. 1, 17 or 21), evaluated when it acted;
-3. one optax ascent step.
+4. `optimiser_step`: one optax ascent step, the global gradient norm clipped at `max_grad_norm`
+   (a non-finite estimate is skipped), then the learnable sigma clipped to [min_std, max_std].
 
 Before the first update the GP hyperparameters are fitted on `hyperfit_samples` pairs collected
-with the initial fixed-noise policy (paper §VI). `jit(vmap(train))(keys)` runs all seeds at once;
-`init` and `run_chunk` expose the same computation in pieces for chunked, resumable runs.
+with the initial fixed-noise policy (paper §VI; `fit_prior`). `jit(vmap(train))(keys)` runs all
+seeds at once; `train.init` and `train.run_chunk` expose the same computation in pieces for chunked,
+resumable runs. Every array is of `config.dtype` (float64 needs JAX's x64 mode; see
+`gpguided_jax.enable_x64`).
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ _POLICY_OF_METHOD = {
     "guided_variance": "guided_variance",
     "guided_direction": "gibbs",
 }
+FEATURE_DIM = 4  # (sin phi, cos phi, omega, a)
 
 
 class TrainState(NamedTuple):
@@ -73,21 +80,25 @@ class UpdateRecord(NamedTuple):
     Attributes:
       mean_reward: average reward per step over the update's episodes (Fig. 5a).
       exploration_std: policy exploration standard deviation, mean over visited states (Fig. 5b).
-      grad_norm: global norm of the gradient estimate.
+      grad_norm: global norm of the gradient estimate (before clipping).
+      grad_clipped: 1 if the norm exceeded `max_grad_norm` and the step was clipped.
+      nonfinite_grad: 1 if the gradient estimate was not finite (the step is then skipped).
+      std_at_bound: 1 if the learnable sigma ended the step at `min_std` or `max_std`.
       num_basis_vectors: active BVs after the update's GP updates.
       fresh_bv_share: share of BVs stamped with this update (Fig. 1).
-      nonfinite_grad: 1 if the gradient estimate was not finite (the step is then skipped).
-      gp_resets: episodes of this update whose GP update produced a non-finite state and was
-        therefore not taken in (the GP kept its state from before the episode).
+      gp_guard: episodes of this update whose GP update failed the health check
+        (`sparse_gp.check`) and was therefore not taken in (the GP kept its state).
     """
 
     mean_reward: jax.Array
     exploration_std: jax.Array
     grad_norm: jax.Array
+    grad_clipped: jax.Array
+    nonfinite_grad: jax.Array
+    std_at_bound: jax.Array
     num_basis_vectors: jax.Array
     fresh_bv_share: jax.Array
-    nonfinite_grad: jax.Array
-    gp_resets: jax.Array
+    gp_guard: jax.Array
 
 
 class Episode(NamedTuple):
@@ -98,15 +109,44 @@ class Episode(NamedTuple):
     exploration_std: jax.Array  # (H,)
 
 
+class Program(NamedTuple):
+    """The static pieces of one configuration (what `make_train` closes over).
+
+    Attributes:
+      config: the `TrainConfig` whose static fields fix the program.
+      controller: the deterministic controller c(s; theta_c).
+      policy: the method's policy (fixed noise, guided variance or Gibbs).
+      behaviour: the fixed-noise policy that collects the hyperparameter-fit data.
+    """
+
+    config: TrainConfig
+    controller: controllers_lib.Controller
+    policy: policies.Policy
+    behaviour: policies.Policy
+
+    @property
+    def dtype(self):
+        return jnp.dtype(self.config.dtype)
+
+
 def make_controller(cfg: TrainConfig) -> controllers_lib.Controller:
     u_max = 5.0  # the controller's squashing range; the environment clips at params.max_torque
     return controllers_lib.make_controller(cfg.controller, u_max=u_max)
 
 
 def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
-    if cfg.optimizer == "sgd":
-        return optax.sgd(cfg.learning_rate)
-    return optax.adam(cfg.learning_rate)
+    """The ascent step: global-norm clipping at `max_grad_norm`, then SGD (the paper) or Adam."""
+    base = optax.sgd(cfg.learning_rate) if cfg.optimizer == "sgd" else optax.adam(cfg.learning_rate)
+    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), base)
+
+
+def make_program(cfg: TrainConfig) -> Program:
+    validate(cfg)
+    controller = make_controller(cfg)
+    policy = policies.make_policy(
+        _POLICY_OF_METHOD[cfg.method], controller, num_candidates=cfg.num_candidates
+    )
+    return Program(cfg, controller, policy, policies.make_policy("fixed_noise", controller))
 
 
 def _features(states, actions):
@@ -129,6 +169,181 @@ def policy_context(cfg: TrainConfig, gp, kernel) -> policies.PolicyContext:
     )
 
 
+# ------------------------------------------------------------------------------------------------
+# The steps of one update, in order.
+# ------------------------------------------------------------------------------------------------
+
+
+def rollout(prog: Program, key, theta, ctx, policy, cfg: TrainConfig) -> Episode:
+    """Step 1: one episode of `episode_length` steps with `policy` (GP in `ctx` held fixed)."""
+    key_reset, key_steps = jax.random.split(key)
+    s0 = pendulum.reset(key_reset, cfg.pendulum)
+
+    def body(s, step_key):
+        key_act, key_reward = jax.random.split(step_key)
+        a, aux = policy.sample(key_act, theta, s, ctx)
+        score = policy.grad_log_prob(theta, s, a, ctx, aux)
+        std = policy.exploration_std(theta, s, ctx, aux)
+        s_next, r = pendulum.step(key_reward, s, a, cfg.pendulum)
+        return s_next, (s, a, r, score, std)
+
+    keys = jax.random.split(key_steps, prog.config.episode_length)
+    _, (s, a, r, scores, std) = jax.lax.scan(body, s0, keys)
+    return Episode(s, a, r, scores, std)
+
+
+def take_in_episode(gp, kernel, xs, returns, update_index, cfg: TrainConfig):
+    """Step 2: the GP takes in one episode's (x_t, Ret_t); rejected if the result is unhealthy.
+
+    Returns:
+      (gp, guard_fired): the new GP (or the old one if `sparse_gp.check` failed) and 0/1.
+    """
+    new_gp = sparse_gp.update_batch(
+        gp, xs, returns, kernel, update_index,
+        novelty_tol=cfg.novelty_tol,
+        age_penalty=cfg.age_penalty,
+        age_scale=cfg.age_scale,
+        age_fn=cfg.age_fn,
+    )
+    healthy = sparse_gp.check(new_gp, kernel, xs, returns).ok
+    gp = jax.tree_util.tree_map(lambda n, o: jnp.where(healthy, n, o), new_gp, gp)
+    return gp, (~healthy).astype(jnp.int32)
+
+
+def gradient_estimate(prog: Program, state: TrainState, eps: Episode, returns, gp):
+    """Step 3: eq. 4 (REINFORCE) or eq. 9 (Q_GP of the updated GP), optionally with a baseline."""
+    static = prog.config
+    if static.uses_gp:
+        feats = jax.vmap(_features)(eps.states, eps.actions)
+        predict_mean = jax.vmap(jax.vmap(lambda x: sparse_gp.predict(gp, x, state.kernel)[0]))
+        weights = predict_mean(feats)
+    else:
+        weights = returns
+    baseline = None
+    if static.use_baseline:
+        if static.uses_gp:
+            apply = jax.vmap(jax.vmap(lambda s: prog.controller.apply(state.theta.controller, s)))
+            baseline = predict_mean(jax.vmap(_features)(eps.states, apply(eps.states)))
+        else:
+            baseline = jnp.broadcast_to(returns.mean(axis=0, keepdims=True), returns.shape)
+    return estimators.policy_gradient(eps.scores, weights, baseline)
+
+
+def optimiser_step(state: TrainState, grad, cfg: TrainConfig):
+    """Step 4: clipped ascent step; skipped if the estimate is not finite; sigma clipped.
+
+    Returns:
+      (theta, opt_state, grad_norm, finite, at_bound).
+    """
+    grad_norm = optax.global_norm(grad)
+    finite = jnp.isfinite(grad_norm)
+    safe_grad = jax.tree_util.tree_map(lambda g: jnp.where(finite, g, 0.0), grad)
+    theta, opt_state = estimators.ascent_step(
+        make_optimizer(cfg), state.theta, state.opt_state, safe_grad
+    )
+    keep = lambda new, old: jnp.where(finite, new, old)  # noqa: E731
+    theta = jax.tree_util.tree_map(keep, theta, state.theta)
+    opt_state = jax.tree_util.tree_map(keep, opt_state, state.opt_state)
+    lo, hi = jnp.log(cfg.min_std), jnp.log(cfg.max_std)
+    log_std = jnp.clip(theta.log_std, lo, hi)
+    at_bound = (log_std <= lo) | (log_std >= hi)
+    return theta._replace(log_std=log_std), opt_state, grad_norm, finite, at_bound
+
+
+def one_update(prog: Program, cfg: TrainConfig, state: TrainState):
+    """key -> roll-outs and GP updates (steps 1-2) -> gradient (3) -> optimiser (4) -> record."""
+    static = prog.config
+    key, key_eps = jax.random.split(state.key)
+    t = state.update_index
+
+    def episode(gp, key_e):
+        ctx = policy_context(cfg, gp, state.kernel)
+        ep = rollout(prog, key_e, state.theta, ctx, prog.policy, cfg)
+        returns = estimators.discounted_returns(ep.rewards, cfg.discount)
+        fired = jnp.zeros((), jnp.int32)
+        if static.uses_gp:
+            gp, fired = take_in_episode(gp, state.kernel, _features(ep.states, ep.actions),
+                                        returns, t, cfg)
+        return gp, (ep, returns, fired)
+
+    keys = jax.random.split(key_eps, static.episodes_per_update)
+    gp, (eps, returns, fired) = jax.lax.scan(episode, state.gp, keys)
+    grad = gradient_estimate(prog, state, eps, returns, gp)
+    theta, opt_state, grad_norm, finite, at_bound = optimiser_step(state, grad, cfg)
+
+    n_bv = sparse_gp.num_basis_vectors(gp)
+    fresh = jnp.sum(gp.mask & (gp.timestamps == t))
+    record = UpdateRecord(
+        mean_reward=jnp.mean(eps.rewards),
+        exploration_std=jnp.mean(eps.exploration_std),
+        grad_norm=grad_norm,
+        grad_clipped=(finite & (grad_norm > cfg.max_grad_norm)).astype(jnp.int32),
+        nonfinite_grad=(~finite).astype(jnp.int32),
+        std_at_bound=at_bound.astype(jnp.int32),
+        num_basis_vectors=n_bv,
+        fresh_bv_share=jnp.where(n_bv > 0, fresh / jnp.maximum(n_bv, 1), 0.0).astype(prog.dtype),
+        gp_guard=jnp.sum(fired),
+    )
+    return TrainState(theta, opt_state, gp, state.kernel, key, t + 1), record
+
+
+# ------------------------------------------------------------------------------------------------
+# Initialisation: the hyperparameter fit and the initial state.
+# ------------------------------------------------------------------------------------------------
+
+
+def initial_theta(prog: Program, cfg: TrainConfig) -> policies.PolicyParams:
+    return policies.init_params(prog.controller, log_std=cfg.init_log_std, dtype=prog.dtype)
+
+
+def collect(prog: Program, key, cfg: TrainConfig):
+    """(x, Ret) pairs from the initial fixed-noise policy: (n_episodes * H, 4), (n * H,)."""
+    theta = initial_theta(prog, cfg)
+    gp = sparse_gp.init(1, FEATURE_DIM, prog.dtype)
+    dummy_kernel = kernels.make_kernel_params(jnp.ones(FEATURE_DIM), dtype=prog.dtype)
+    ctx = policy_context(cfg, gp, dummy_kernel)
+    keys = jax.random.split(key, prog.config.hyperfit_episodes)
+    eps = jax.vmap(lambda k: rollout(prog, k, theta, ctx, prog.behaviour, cfg))(keys)
+    returns = jax.vmap(estimators.discounted_returns, in_axes=(0, None))(eps.rewards, cfg.discount)
+    xs = jax.vmap(_features)(eps.states, eps.actions).reshape(-1, FEATURE_DIM)
+    return xs, returns.reshape(-1)
+
+
+def fit_prior(prog: Program, key, cfg: TrainConfig) -> GPPrior:
+    """The GP's kernel (exact marginal likelihood on a random subset, paper §VI) and prior mean."""
+    static = prog.config
+    key_data, key_subset = jax.random.split(key)
+    xs, ys = collect(prog, key_data, cfg)
+    mean = jnp.mean(ys)  # the prior mean of Q_GP; the kernel is fitted to centred returns
+    n = min(static.hyperfit_subset, xs.shape[0])
+    if n < xs.shape[0]:
+        idx = jax.random.choice(key_subset, xs.shape[0], (n,), replace=False)
+        xs, ys = xs[idx], ys[idx]
+    kernel = hyperfit.fit(xs, ys - mean, num_steps=static.hyperfit_steps).params
+    return GPPrior(kernel, mean)
+
+
+def initial_state(prog: Program, key, cfg: TrainConfig, prior: GPPrior | None = None) -> TrainState:
+    static = prog.config
+    key_fit, key_run = jax.random.split(key)
+    if prior is None:
+        if static.uses_gp:
+            prior = fit_prior(prog, key_fit, cfg)
+        else:  # unused by REINFORCE
+            prior = GPPrior(kernels.make_kernel_params(jnp.ones(FEATURE_DIM), dtype=prog.dtype),
+                            jnp.zeros((), prog.dtype))
+    prior = jax.tree_util.tree_map(lambda a: jnp.asarray(a, prog.dtype), prior)
+    theta = initial_theta(prog, cfg)
+    opt_state = make_optimizer(cfg).init(theta)
+    gp = sparse_gp.init(static.gp_capacity, FEATURE_DIM, prog.dtype, prior_mean=prior.mean)
+    return TrainState(theta, opt_state, gp, prior.kernel, key_run, jnp.zeros((), jnp.int32))
+
+
+# ------------------------------------------------------------------------------------------------
+# The public entry point.
+# ------------------------------------------------------------------------------------------------
+
+
 def make_train(config: TrainConfig):
     """Builds the pure training functions of one static configuration.
 
@@ -139,19 +354,12 @@ def make_train(config: TrainConfig):
       - `train.init(key, cfg=config, prior=None) -> TrainState`: hyperparameter fit (skipped when a
         `GPPrior` is given, or for REINFORCE) and initial state.
       - `train.run_chunk(state, cfg=config, num_updates=...) -> (TrainState, UpdateRecord)`.
-      - `train.fit_kernel_for_seed(key, cfg=config) -> GPPrior`, `train.collect(...)`.
+      - `train.fit_kernel_for_seed(key, cfg=config) -> GPPrior`, `train.collect(key, cfg)`.
       - `train.episodes(key, state, cfg=config, num_episodes=3) -> Episode`: roll out the
         method's policy at a given state (visited states for figures, evaluation).
     """
-    validate(config)
+    prog = make_program(config)
     static = config
-    controller = make_controller(static)
-    policy = policies.make_policy(
-        _POLICY_OF_METHOD[static.method], controller, num_candidates=static.num_candidates
-    )
-    behaviour = policies.make_policy("fixed_noise", controller)
-    H = static.episode_length
-    E = static.episodes_per_update
 
     def _check(cfg: TrainConfig):
         if cfg.static_dict() != static.static_dict():
@@ -160,131 +368,13 @@ def make_train(config: TrainConfig):
                 f"{cfg.static_dict()} != {static.static_dict()}"
             )
 
-    def rollout(key, theta, ctx, pol, cfg) -> Episode:
-        key_reset, key_steps = jax.random.split(key)
-        s0 = pendulum.reset(key_reset, cfg.pendulum)
-
-        def body(s, step_key):
-            key_act, key_reward = jax.random.split(step_key)
-            a, aux = pol.sample(key_act, theta, s, ctx)
-            score = pol.grad_log_prob(theta, s, a, ctx, aux)
-            std = pol.exploration_std(theta, s, ctx, aux)
-            s_next, r = pendulum.step(key_reward, s, a, cfg.pendulum)
-            return s_next, (s, a, r, score, std)
-
-        _, (s, a, r, scores, std) = jax.lax.scan(body, s0, jax.random.split(key_steps, H))
-        return Episode(s, a, r, scores, std)
-
-    def initial_theta(cfg):
-        return policies.init_params(controller, log_std=cfg.init_log_std)
-
-    def collect(key, cfg=config):
-        """(x, Ret) pairs from the initial fixed-noise policy: (n_episodes * H, 4), (n * H,)."""
-        theta = initial_theta(cfg)
-        gp = sparse_gp.init(1, 4)
-        dummy_kernel = kernels.make_kernel_params(jnp.ones(4))
-        ctx = policy_context(cfg, gp, dummy_kernel)
-        keys = jax.random.split(key, static.hyperfit_episodes)
-        eps = jax.vmap(lambda k: rollout(k, theta, ctx, behaviour, cfg))(keys)
-        returns = jax.vmap(estimators.discounted_returns, in_axes=(0, None))(eps.rewards, cfg.discount)
-        xs = jax.vmap(_features)(eps.states, eps.actions).reshape(-1, 4)
-        return xs, returns.reshape(-1)
-
-    def fit_prior(key, cfg=config) -> GPPrior:
-        key_data, key_subset = jax.random.split(key)
-        xs, ys = collect(key_data, cfg)
-        mean = jnp.mean(ys)  # the prior mean of Q_GP; the kernel is fitted to centred returns
-        n = min(static.hyperfit_subset, xs.shape[0])
-        if n < xs.shape[0]:
-            idx = jax.random.choice(key_subset, xs.shape[0], (n,), replace=False)
-            xs, ys = xs[idx], ys[idx]
-        kernel = hyperfit.fit(xs, ys - mean, num_steps=static.hyperfit_steps).params
-        return GPPrior(kernel, mean)
-
     def init(key, cfg=config, prior: GPPrior | None = None):
         _check(cfg)
-        key_fit, key_run = jax.random.split(key)
-        if prior is None:
-            if static.uses_gp:
-                prior = fit_prior(key_fit, cfg)
-            else:  # unused by REINFORCE
-                prior = GPPrior(kernels.make_kernel_params(jnp.ones(4)), jnp.zeros(()))
-        theta = initial_theta(cfg)
-        opt_state = make_optimizer(cfg).init(theta)
-        gp = sparse_gp.init(static.gp_capacity, 4, prior_mean=prior.mean)
-        return TrainState(theta, opt_state, gp, prior.kernel, key_run, jnp.zeros((), jnp.int32))
-
-    def one_update(cfg, state: TrainState, _):
-        key, key_eps = jax.random.split(state.key)
-        t = state.update_index
-
-        def episode(gp, key_e):
-            ep = rollout(key_e, state.theta, policy_context(cfg, gp, state.kernel), policy, cfg)
-            returns = estimators.discounted_returns(ep.rewards, cfg.discount)
-            reset = jnp.zeros((), jnp.int32)
-            if static.uses_gp:
-                new_gp = sparse_gp.update_batch(
-                    gp,
-                    _features(ep.states, ep.actions),
-                    returns,
-                    state.kernel,
-                    t,
-                    novelty_tol=cfg.novelty_tol,
-                    age_penalty=cfg.age_penalty,
-                    age_scale=cfg.age_scale,
-                    age_fn=static.age_fn,
-                )
-                # Last line of defence: never let a diverged GP state into the policy.
-                healthy = jnp.all(jnp.isfinite(new_gp.alpha)) & jnp.all(jnp.isfinite(new_gp.C))
-                gp = jax.tree_util.tree_map(lambda n, o: jnp.where(healthy, n, o), new_gp, gp)
-                reset = (~healthy).astype(jnp.int32)
-            return gp, (ep, returns, reset)
-
-        gp, (eps, returns, resets) = jax.lax.scan(episode, state.gp, jax.random.split(key_eps, E))
-
-        if static.uses_gp:
-            feats = jax.vmap(_features)(eps.states, eps.actions)
-            predict_mean = jax.vmap(jax.vmap(lambda x: sparse_gp.predict(gp, x, state.kernel)[0]))
-            weights = predict_mean(feats)
-        else:
-            weights = returns
-        baseline = None
-        if static.use_baseline:
-            if static.uses_gp:
-                c = jax.vmap(jax.vmap(lambda s: controller.apply(state.theta.controller, s)))(eps.states)
-                v_feats = jax.vmap(_features)(eps.states, c)
-                baseline = predict_mean(v_feats)
-            else:
-                baseline = jnp.broadcast_to(returns.mean(axis=0, keepdims=True), returns.shape)
-        grad = estimators.policy_gradient(eps.scores, weights, baseline)
-        grad_norm = optax.global_norm(grad)
-        finite = jnp.isfinite(grad_norm)
-        safe_grad = jax.tree_util.tree_map(lambda g: jnp.where(finite, g, 0.0), grad)
-        theta, opt_state = estimators.ascent_step(
-            make_optimizer(cfg), state.theta, state.opt_state, safe_grad
-        )
-        theta = jax.tree_util.tree_map(lambda new, old: jnp.where(finite, new, old), theta, state.theta)
-        theta = theta._replace(
-            log_std=jnp.clip(theta.log_std, jnp.log(cfg.min_std), jnp.log(cfg.max_std))
-        )
-
-        n_bv = sparse_gp.num_basis_vectors(gp)
-        fresh = jnp.sum(gp.mask & (gp.timestamps == t))
-        record = UpdateRecord(
-            mean_reward=jnp.mean(eps.rewards),
-            exploration_std=jnp.mean(eps.exploration_std),
-            grad_norm=grad_norm,
-            num_basis_vectors=n_bv,
-            fresh_bv_share=jnp.where(n_bv > 0, fresh / jnp.maximum(n_bv, 1), 0.0),
-            nonfinite_grad=(~finite).astype(jnp.int32),
-            gp_resets=jnp.sum(resets),
-        )
-        new_state = TrainState(theta, opt_state, gp, state.kernel, key, t + 1)
-        return new_state, record
+        return initial_state(prog, key, cfg, prior)
 
     def run_chunk(state, cfg=config, num_updates=static.num_updates):
         _check(cfg)
-        return jax.lax.scan(lambda s, x: one_update(cfg, s, x), state, None, length=num_updates)
+        return jax.lax.scan(lambda s, _: one_update(prog, cfg, s), state, None, length=num_updates)
 
     def train(key, cfg=config):
         return run_chunk(init(key, cfg), cfg, static.num_updates)
@@ -294,20 +384,21 @@ def make_train(config: TrainConfig):
         leading (num_episodes,) axis. For figures of visited states and for evaluation."""
         ctx = policy_context(cfg, state.gp, state.kernel)
         keys = jax.random.split(key, num_episodes)
-        return jax.vmap(lambda k: rollout(k, state.theta, ctx, policy, cfg))(keys)
+        return jax.vmap(lambda k: rollout(prog, k, state.theta, ctx, prog.policy, cfg))(keys)
 
     def fit_kernel_for_seed(key, cfg=config) -> GPPrior:
         """The `GPPrior` (kernel and prior mean) that `init(key, cfg)` would fit; it depends only on
         the seed and the initial policy, so every GP method of a seed can share it."""
-        return fit_prior(jax.random.split(key)[0], cfg)
+        return fit_prior(prog, jax.random.split(key)[0], cfg)
 
     train.init = init
     train.run_chunk = run_chunk
-    train.fit_prior = fit_prior
+    train.fit_prior = lambda key, cfg=config: fit_prior(prog, key, cfg)
     train.fit_kernel_for_seed = fit_kernel_for_seed
-    train.collect = collect
+    train.collect = lambda key, cfg=config: collect(prog, key, cfg)
     train.episodes = episodes
-    train.controller = controller
-    train.policy = policy
+    train.program = prog
+    train.controller = prog.controller
+    train.policy = prog.policy
     train.config = config
     return train

@@ -45,8 +45,10 @@ import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
 
-import gpguided_jax  # noqa: F401  (switches JAX to float64)
+import gpguided_jax
 from gpguided_jax import config, hyperfit, kernels, pendulum, sparse_gp, train
+
+gpguided_jax.enable_x64()  # float64: the package leaves this choice to its user
 
 key = jax.random.PRNGKey(0)
 key_sim, key_collect, key_fit, key_train = jax.random.split(key, 4)

@@ -43,8 +43,10 @@ import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
 
-import gpguided_jax  # noqa: F401  (switches JAX to float64)
+import gpguided_jax
 from gpguided_jax import config, policies, train
+
+gpguided_jax.enable_x64()  # float64: the package leaves this choice to its user
 
 # gp_pg (fixed noise, same GP critic) is the reference; the quick test run skips it to save a compile.
 METHODS = ("guided_variance", "guided_direction") + (() if QUICK else ("gp_pg",))

@@ -38,8 +38,10 @@ import matplotlib.pyplot as plt
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-import gpguided_jax  # noqa: F401  (switches JAX to float64)
+import gpguided_jax
 from gpguided_jax import controllers, estimators, kernels, pendulum, policies, sparse_gp
+
+gpguided_jax.enable_x64()  # float64: the package leaves this choice to its user
 
 key = jax.random.PRNGKey(0)
 key_data, key_cases, key_gibbs = jax.random.split(key, 3)

@@ -48,8 +48,10 @@ import matplotlib.pyplot as plt
 import numpy as np
 from scipy import stats
 
-import gpguided_jax  # noqa: F401  (switches JAX to float64)
+import gpguided_jax
 from gpguided_jax import config, train
+
+gpguided_jax.enable_x64()  # float64: the package leaves this choice to its user
 
 cfg = config.preset("paper", method=METHOD, gp_capacity=GP_CAPACITY, **SIZE)
 run = train.make_train(cfg)
@@ -90,8 +92,8 @@ print(f"{L * S} runs as one program: {time.perf_counter() - t0:.1f} s (compilati
 # (L, S, updates) arrays
 rec = {k: np.asarray(v).reshape(L, S, -1) for k, v in records._asdict().items()}
 assert rec["nonfinite_grad"].sum() == 0, "a gradient estimate was not finite"
-if rec.get("gp_resets", np.zeros(1)).sum():
-    print(f"note: {int(rec['gp_resets'].sum())} episodes' GP updates were rejected as non-finite")
+if rec.get("gp_guard", np.zeros(1)).sum():
+    print(f"note: {int(rec['gp_guard'].sum())} episodes' GP updates were rejected by the health check")
 
 # %% [markdown]
 # ## Seed sweep (λ = 100)

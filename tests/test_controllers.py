@@ -10,9 +10,11 @@ from hypothesis import strategies as st
 from jax.flatten_util import ravel_pytree
 from jax.test_util import check_grads
 
-from gpguided_jax import _x64, controllers
+import gpguided_jax
+from gpguided_jax import controllers
 
-_x64.enable_x64_from_env()
+gpguided_jax.enable_x64()
+
 requires_x64 = pytest.mark.skipif(not jax.config.jax_enable_x64, reason="needs float64")
 
 CONTROLLER_NAMES = ("linear", "rbf")

@@ -18,9 +18,11 @@ from jax.flatten_util import ravel_pytree
 from jax.test_util import check_grads
 from scipy import stats
 
-from gpguided_jax import _x64, controllers, kernels, policies, sparse_gp
+import gpguided_jax
+from gpguided_jax import controllers, kernels, policies, sparse_gp
 
-_x64.enable_x64_from_env()
+gpguided_jax.enable_x64()
+
 requires_x64 = pytest.mark.skipif(not jax.config.jax_enable_x64, reason="needs float64")
 
 SLOTS = 8
@@ -54,25 +56,9 @@ def exact_gp(key, state, action_centre, n_active, alpha_scale=1.0, dtype=jnp.flo
     basis = jax.vmap(kernels.state_action_features)(states, actions)
     log_ls = jax.random.uniform(k_hyper, (4,), dtype, jnp.log(0.3), jnp.log(3.0))
     hyper = kernels.make_kernel_params(jnp.exp(log_ls), 2.0, 0.1, dtype=dtype)
-    mask = jnp.arange(SLOTS) < n_active
-    both = mask[:, None] & mask[None, :]
-    gram = kernels.gram(basis, basis, hyper)
-    eye = jnp.eye(SLOTS, dtype=dtype)
-    reg = jnp.where(both, gram + hyper.noise_variance * eye, eye)
-    reg_inv = jnp.linalg.inv(reg)
-    reg_inv = 0.5 * (reg_inv + reg_inv.T)
     y = 3.0 * jax.random.normal(k_y, (SLOTS,), dtype) - 5.0
-    alpha = alpha_scale * jnp.where(mask, reg_inv @ y, 0.0)
-    C = jnp.where(both, -reg_inv, 0.0)
-    Q = jnp.where(both, jnp.linalg.inv(jnp.where(both, gram, eye)), 0.0)
-    gp = sparse_gp.SparseGPState(
-        basis_vectors=basis,
-        alpha=alpha,
-        C=C,
-        Q=Q,
-        timestamps=jnp.zeros((SLOTS,), jnp.int32),
-        mask=mask,
-    )
+    gp = sparse_gp.exact_state(basis, y, hyper, capacity=SLOTS, num_active=n_active)
+    gp = gp._replace(alpha=alpha_scale * gp.alpha)
     return gp, hyper
 
 

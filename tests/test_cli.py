@@ -1,0 +1,97 @@
+"""The command line and the package's global configuration: argument checks, dtype both ways,
+corrupt files in --out, atomic writes, and that importing the package leaves JAX's x64 flag alone."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from gpguided_jax import cli
+from gpguided_jax import reproduce as R
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _python(code: str, **env):
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, **env}, cwd=ROOT)
+    return proc
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["--chunk-size", "0"], "--chunk-size: must be >= 1, got 0"),
+        (["--devices", "0"], "--devices: must be >= 1, got 0"),
+        (["--seeds", "0"], "--seeds: must be >= 1, got 0"),
+        (["--seed-start", "-3"], "--seed-start: must be >= 0, got -3"),
+        (["--chunk-size", "two"], "--chunk-size: expected a positive integer, got 'two'"),
+        (["--dtype", "float16"], "--dtype: invalid choice"),
+    ],
+)
+def test_bad_arguments_are_refused_in_one_line(args, message, capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["reproduce", "--preset", "tiny", *args])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_import_does_not_touch_the_x64_flag():
+    proc = _python("import jax, gpguided_jax, gpguided_jax.train, gpguided_jax.reproduce; "
+                   "print(jax.config.jax_enable_x64)", JAX_ENABLE_X64="0")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "False"
+
+
+def test_float64_without_x64_is_refused_with_advice():
+    proc = _python("from gpguided_jax import config; config.preset('tiny')", JAX_ENABLE_X64="0")
+    assert proc.returncode != 0 and "enable_x64" in proc.stderr
+    proc = _python("from gpguided_jax import config; print(config.preset('tiny', dtype='float32').learning_rate.dtype)",
+                   JAX_ENABLE_X64="0")
+    assert proc.returncode == 0 and proc.stdout.strip() == "float32", proc.stderr
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_cli_runs_in_both_dtypes(tmp_path, dtype):
+    """The whole pipeline from the command line; float32 runs with JAX's x64 mode off."""
+    out = tmp_path / dtype
+    proc = subprocess.run(
+        [sys.executable, "-m", "gpguided_jax.cli", "reproduce", "--preset", "tiny", "--seeds", "2",
+         "--methods", "reinforce", "guided_variance", "--dtype", dtype, "--chunk-size", "3",
+         "--out", str(out)], capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "failing seeds" in proc.stdout and "P(X > Y)" in proc.stdout
+    with np.load(out / "checkpoint_guided_variance.npz") as f:
+        floats = [f[k] for k in f.files if k.startswith("leaf_") and f[k].dtype.kind == "f"]
+    assert floats and all(x.dtype == np.dtype(dtype) for x in floats)
+    with np.load(out / "results.npz") as f:
+        for k in R.RECORD_FIELDS:
+            assert np.all(np.isfinite(f[k])), k
+    leftovers = [p for p in os.listdir(out) if ".tmp" in p]
+    assert not leftovers, leftovers
+
+
+def test_corrupt_checkpoint_and_kernels_are_set_aside(tmp_path):
+    kw = dict(preset="tiny", seeds=[0, 1], methods=["gp_pg"], chunk_size=3)
+    first = R.reproduce(out_dir=str(tmp_path), progress=lambda m: None, **kw)
+    ckpt, kern = tmp_path / "checkpoint_gp_pg.npz", tmp_path / "kernels.npz"
+    ckpt.write_bytes(b"not a zip file")
+    kern.write_bytes(ckpt.read_bytes()[:5])
+    msgs = []
+    again = R.reproduce(out_dir=str(tmp_path), progress=msgs.append, **kw)
+    assert any("checkpoint_gp_pg.npz could not be read" in m for m in msgs), msgs
+    assert any("kernels.npz could not be read" in m for m in msgs), msgs
+    assert (tmp_path / "checkpoint_gp_pg.npz.corrupt").exists()
+    assert (tmp_path / "kernels.npz.corrupt").exists()
+    # started afresh, so the results are those of the first run
+    assert again["summary"][0]["final_mean"] == first["summary"][0]["final_mean"]
+    # a checkpoint with the right digest but missing arrays is set aside too
+    with np.load(ckpt) as f:
+        arrays = {k: f[k] for k in f.files if k != "leaf_0"}
+    np.savez(ckpt, **arrays)
+    msgs = []
+    R.reproduce(out_dir=str(tmp_path), progress=msgs.append, **kw)
+    assert any("missing or mis-shaped" in m for m in msgs), msgs
