@@ -113,7 +113,7 @@ class TrainConfig:
     dtype: str = "float64"
     # traced
     learning_rate: Any = 2e-4
-    max_grad_norm: Any = 1000.0
+    max_grad_norm: Any = 300.0
     discount: Any = 0.99
     init_log_std: Any = math.log(1.5)
     min_std: Any = 0.05

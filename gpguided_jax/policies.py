@@ -203,10 +203,11 @@ def gp_latent_variance_and_grad(gp, kernel, state, action):
     dk = -k * (x[-1] - gp.basis_vectors[:, -1]) / (action_lengthscale * action_lengthscale)
     T, Z = gp.gram_inv_root, gp.alpha_cov_root
     w, z = T @ k, Z @ k
+    w_d, z_d = T @ dk, Z @ dk
     gamma = kxx - w @ w
     positive = gamma > 0.0
     variance = jnp.where(positive, gamma, jnp.zeros_like(gamma)) + z @ z
-    dvariance = jnp.where(positive, -2.0 * (w @ (T @ dk)), 0.0) + 2.0 * (z @ (Z @ dk))
+    dvariance = jnp.where(positive, -2.0 * (w @ w_d), 0.0) + 2.0 * (z @ z_d)
     return variance, dvariance
 
 
@@ -352,8 +353,10 @@ def guided_variance_policy(controller: controllers_lib.Controller) -> Policy:
         return PolicyParams(controller=grad_controller, log_std=jnp.zeros_like(theta.log_std))
 
     def exploration_std(theta, state, ctx, aux):
-        del aux
-        return jnp.sqrt(guided_variance(controller, theta.controller, state, ctx))
+        # sigma_GP of the distribution the action was drawn from (the same number that
+        # guided_variance(controller, theta.controller, state, ctx) recomputes).
+        del theta, state, ctx
+        return jnp.sqrt(aux.variance)
 
     return Policy(sample, log_prob, grad_log_prob, exploration_std, "guided_variance")
 

@@ -82,6 +82,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax import custom_batching
 
 from gpguided_jax import kernels
 
@@ -119,14 +120,12 @@ class Projection(NamedTuple):
       w: (S,) T k, the whitened kernel vector; |w|^2 = k^T Q k.
       gamma: () k** - |w|^2, the novelty (Nystrom residual; unclipped, may be a rounding-level
         negative number).
-      e_hat: (S,) Q k = T^T w, the projection coefficients of x onto the BVs.
     """
 
     k: jax.Array
     kxx: jax.Array
     w: jax.Array
     gamma: jax.Array
-    e_hat: jax.Array
 
 
 AGE_FUNCTIONS = ("exp", "logit")
@@ -324,13 +323,61 @@ def age_function(
 # ------------------------------------------------------------------------------------------------
 
 
+class _Pending(NamedTuple):
+    """A matrix X = base + sum_r u_r v_r^T whose rank-one terms are not yet written.
+
+    One update's changes of T or Z (the insertion row, the Potter step, the Householder
+    reflection) are collected here and written in one fused pass over the buffer (`materialize`);
+    every read in between goes through the base and the terms (matvec, rmatvec, row, column).
+    """
+
+    base: jax.Array
+    us: tuple = ()
+    vs: tuple = ()
+
+    def plus(self, u, v) -> "_Pending":
+        return _Pending(self.base, self.us + (u,), self.vs + (v,))
+
+    def matvec(self, x):  # X x
+        out = self.base @ x
+        for u, v in zip(self.us, self.vs):
+            out = out + u * (v @ x)
+        return out
+
+    def rmatvec(self, y):  # y^T X
+        out = y @ self.base
+        for u, v in zip(self.us, self.vs):
+            out = out + (y @ u) * v
+        return out
+
+    def column(self, j):
+        out = self.base[:, j]
+        for u, v in zip(self.us, self.vs):
+            out = out + u * v[j]
+        return out
+
+    def row(self, i):
+        out = self.base[i]
+        for u, v in zip(self.us, self.vs):
+            out = out + u[i] * v
+        return out
+
+    def materialize(self, keep, use=True, otherwise=None):
+        """base + sum_r u_r v_r^T with rows and columns outside `keep` zeroed, written in one pass;
+        where `use` is False, `otherwise` (default: base) instead."""
+        X = self.base
+        for u, v in zip(self.us, self.vs):
+            X = X + u[:, None] * v[None, :]
+        X = jnp.where(keep[:, None] & keep[None, :], X, 0.0)
+        return jnp.where(use, X, self.base if otherwise is None else otherwise)
+
+
 def project(state: SparseGPState, x: jax.Array, hyper: kernels.KernelParams) -> Projection:
-    """Step 1 (eq. 10-11): kernel vector, whitened kernel vector, novelty and projection of x."""
-    T = state.gram_inv_root
+    """Step 1 (eq. 10-11): kernel vector, whitened kernel vector and novelty of x."""
     k = masked_kernel_vector(state, x, hyper)
     kxx = kernels.kernel_diag(x, hyper)
-    w = T @ k
-    return Projection(k=k, kxx=kxx, w=w, gamma=kxx - w @ w, e_hat=w @ T)
+    w = state.gram_inv_root @ k
+    return Projection(k=k, kxx=kxx, w=w, gamma=kxx - w @ w)
 
 
 def leave_one_out_precision(state: SparseGPState) -> jax.Array:
@@ -339,96 +386,125 @@ def leave_one_out_precision(state: SparseGPState) -> jax.Array:
     return jnp.sum(T * T, axis=0)
 
 
-def insert(state: SparseGPState, x, proj: Projection, timestamp, add) -> tuple[SparseGPState, jax.Array]:
-    """Step 2: x becomes a BV in the first free slot j if `add` (traced bool).
-
-    T and Z both gain the row t = (e_j - e_hat) / sqrt(gamma) (see the module notes).
+def _potter(Z: _Pending, alpha, prior_mean, k_obs, y, noise_variance, ok):
+    """Step 3 (eq. 7-8): y = k_obs^T alpha + noise, Potter's square-root update (module notes).
 
     Returns:
-      (state, k_obs): the new state and the kernel vector of x against it (k + k** e_j if added).
+      (Z with the update pending, new alpha, g = Cov[alpha] k_obs, d = sigma_n^2 + |Z k_obs|^2).
     """
-    dtype = state.alpha.dtype
-    slots = jnp.arange(state.alpha.shape[0])
-    j = jnp.argmin(state.mask)  # the first free slot; one always exists (at most M of M+1 active)
-    onehot = (slots == j) & add
-    inv_sqrt_gamma = jax.lax.rsqrt(jnp.where(add, proj.gamma, 1.0))
-    row = (onehot.astype(dtype) - proj.e_hat) * inv_sqrt_gamma
-
-    def set_row(X):
-        return X.at[j].set(jnp.where(add, row, X[j]))
-
-    new = state._replace(
-        basis_vectors=state.basis_vectors.at[j].set(jnp.where(add, x, state.basis_vectors[j])),
-        gram_inv_root=set_row(state.gram_inv_root),
-        alpha_cov_root=set_row(state.alpha_cov_root),
-        timestamps=jnp.where(onehot, jnp.asarray(timestamp, jnp.int32), state.timestamps),
-        mask=state.mask | onehot,
-    )
-    return new, proj.k + jnp.where(onehot, proj.kxx, 0.0)
-
-
-def observe(state: SparseGPState, k_obs, y, noise_variance, ok) -> SparseGPState:
-    """Step 3 (eq. 7-8): Bayesian update of alpha's Gaussian with y = k_obs^T alpha + noise, in
-    Potter's square-root form (module notes). Skipped (state unchanged) where `ok` is False."""
-    Z = state.alpha_cov_root
-    z = Z @ k_obs
-    g = z @ Z  # Cov[alpha] k_obs
+    z = Z.matvec(k_obs)
+    g = Z.rmatvec(z)  # Cov[alpha] k_obs
     d = noise_variance + z @ z
-    residual = y - state.prior_mean - k_obs @ state.alpha
+    residual = y - prior_mean - k_obs @ alpha
     gain = jnp.where(ok, residual / d, 0.0)
     beta = jnp.where(ok, 1.0 / (d + jnp.sqrt(d * noise_variance)), 0.0)
-    return state._replace(
-        alpha=state.alpha + gain * g,
-        alpha_cov_root=Z - (beta * z)[:, None] * g[None, :],
-    )
+    return Z.plus(-beta * z, g), alpha + gain * g, g, d
 
 
-def scores(state: SparseGPState, age_penalty=0.0, age_scale=1.0, age_fn: str = "exp",
-           logit_eps=1e-3) -> jax.Array:
-    """Step 4 (eq. 13): eps_i = alpha_i^2 / (Q + C)_ii + lambda g(t_i); +inf on inactive slots.
-
-    (Q + C)_ii = |Z e_i|^2 is the posterior variance of alpha_i (a sum of squares); the KL term
-    alpha_i^2 / (Q + C)_ii is the squared mean over the variance of the coefficient that a
-    deletion sets to 0.
-    """
-    dtype = state.alpha.dtype
-    Z = state.alpha_cov_root
-    var_alpha = jnp.sum(Z * Z, axis=0)
-    kl = jnp.where(var_alpha > 0, state.alpha**2 / jnp.where(var_alpha > 0, var_alpha, 1.0), jnp.inf)
-    g = age_function(state.timestamps, state.mask, jnp.asarray(age_scale, dtype), age_fn,
-                     jnp.asarray(logit_eps, dtype))
-    return jnp.where(state.mask, kl + jnp.asarray(age_penalty, dtype) * g, jnp.inf)
-
-
-def _reflect_out(X: jax.Array, j, do) -> jax.Array:
-    """H X with the Householder H taking X e_j / |X e_j| to +-e_j (identity where `do` is False)."""
-    col = X[:, j]
+def _reflect_out(X: _Pending, j, do, col, col_row) -> _Pending:
+    """Step 5's rotation: X <- H X, H the Householder reflection taking col / |col| to +-e_j
+    (col = X e_j, col_row = col^T X); then row j holds the conditioned-out direction. No-op where
+    `do` is False."""
     norm = jnp.sqrt(col @ col)
-    unit = col / jnp.where(norm > 0, norm, 1.0)
-    sign = jnp.where(unit[j] < 0, -1.0, 1.0).astype(X.dtype)
+    safe = jnp.where(norm > 0, norm, 1.0)
+    unit = col / safe
+    sign = jnp.where(unit[j] < 0, -1.0, 1.0).astype(col.dtype)
     v = unit.at[j].add(sign)  # |v|^2 = 2 (1 + |unit_j|), in [2, 4]
     coef = jnp.where(do & (norm > 0), 1.0 / (1.0 + jnp.abs(unit[j])), 0.0)
-    return X - (coef * v)[:, None] * (v @ X)[None, :]
+    return X.plus(-coef * v, col_row / safe + sign * X.row(j))
 
 
-def delete(state: SparseGPState, j, do) -> SparseGPState:
-    """Step 5 (KL-optimal deletion, eq. 13): condition alpha's Gaussian on alpha_j = 0 and remove
-    slot j (module notes); nothing happens where `do` (traced bool) is False."""
-    Z, T, alpha = state.alpha_cov_root, state.gram_inv_root, state.alpha
-    cov_row = Z[:, j] @ Z  # Cov[alpha] e_j
-    var_j = cov_row[j]
+def _full_update(state, projected, x, y, proj, hyper, timestamp, ok, gamma_min, max_precision,
+                 age_penalty, age_scale, age_fn, logit_eps):
+    """Steps 2-5 for a point that may join the set (see `update_with_info`); `projected` is the
+    state after the projected update, the result if x neither joins nor causes a deletion."""
+    dtype = state.alpha.dtype
+    slots = jnp.arange(state.alpha.shape[0])
+    T, Z = _Pending(state.gram_inv_root), _Pending(state.alpha_cov_root)
+
+    # Step 2, insert: T and Z gain the row t = (e_j - e_hat) / sqrt(gamma) in the free slot j.
+    e_hat = proj.w @ state.gram_inv_root  # Q k
+    novel = proj.gamma >= gamma_min
+    row = -e_hat * jax.lax.rsqrt(jnp.where(novel, proj.gamma, 1.0))
+    j_new = jnp.argmin(state.mask)  # the first free slot; one always exists (<= M of M+1 active)
+    row = row.at[j_new].set(jax.lax.rsqrt(jnp.where(novel, proj.gamma, 1.0)))
+    precision = leave_one_out_precision(state)  # Q_ii, and after an insertion Q_ii + t_i^2:
+    precision_after = precision + row * row
+    collapsing = jnp.sum(state.mask & (precision_after > max_precision))
+    add = ok & novel & (collapsing <= 1)
+    onehot = ((slots == j_new) & add).astype(dtype)
+    row = jnp.where(add, row, 0.0)
+    T, Z = T.plus(onehot, row), Z.plus(onehot, row)
+    precision = jnp.where(add, precision_after, precision)
+    mask = state.mask | (onehot > 0)
+    k_obs = proj.k + onehot * proj.kxx
+
+    # Step 3, observe.
+    var_alpha = jnp.sum(state.alpha_cov_root**2, axis=0) + row * row  # diag Cov[alpha], inserted
+    Z, alpha, g, d = _potter(Z, state.alpha, state.prior_mean, k_obs, y, hyper.noise_variance, ok)
+    var_alpha = var_alpha - g * g / d  # diag(Z^T Z) after the Potter step (exact identity)
+
+    # Step 4, score (eq. 13), and the choice: a collapsed BV if any, else the lowest score.
+    timestamps = jnp.where(onehot > 0, jnp.asarray(timestamp, jnp.int32), state.timestamps)
+    age = age_function(timestamps, mask, jnp.asarray(age_scale, dtype), age_fn,
+                       jnp.asarray(logit_eps, dtype))
+    kl = jnp.where(var_alpha > 0, alpha**2 / jnp.where(var_alpha > 0, var_alpha, 1.0), jnp.inf)
+    score = jnp.where(mask, kl + jnp.asarray(age_penalty, dtype) * age, jnp.inf)
+    collapsed = mask & (precision > max_precision)
+    j = jnp.where(jnp.any(collapsed), jnp.argmax(jnp.where(collapsed, precision, -1.0)),
+                  jnp.argmin(score))
+    do = ok & ((jnp.sum(mask) > capacity(state)) | jnp.any(collapsed))
+
+    # Step 5, delete (KL-optimal): condition alpha on alpha_j = 0, rotate row j out of T and Z.
+    col = Z.column(j)
+    cov_row = Z.rmatvec(col)  # Cov[alpha] e_j
+    var_j = col @ col
     shift = jnp.where(do & (var_j > 0), alpha[j] / jnp.where(var_j > 0, var_j, 1.0), 0.0)
-    slots = jnp.arange(alpha.shape[0])
-    keep = state.mask & ~(do & (slots == j))
-    keep2 = keep[:, None] & keep[None, :]
-    return state._replace(
-        basis_vectors=jnp.where(keep[:, None], state.basis_vectors, 0.0),
-        alpha=jnp.where(keep, alpha - shift * cov_row, 0.0),
-        gram_inv_root=jnp.where(keep2, _reflect_out(T, j, do), 0.0),
-        alpha_cov_root=jnp.where(keep2, _reflect_out(Z, j, do), 0.0),
-        timestamps=jnp.where(keep, state.timestamps, 0),
+    alpha = alpha - shift * cov_row
+    Z = _reflect_out(Z, j, do, col, cov_row)
+    tau = T.column(j)
+    T = _reflect_out(T, j, do, tau, T.rmatvec(tau))
+    keep = mask & ~(do & (slots == j))
+    # A member that neither inserts nor deletes takes the projected update's result, bit for bit
+    # (written in the same pass as this update's own writes).
+    changed = add | do
+    new = SparseGPState(
+        basis_vectors=jnp.where(keep[:, None], state.basis_vectors.at[j_new].set(
+            jnp.where(add, x, state.basis_vectors[j_new])), 0.0),
+        alpha=jnp.where(changed, jnp.where(keep, alpha, 0.0), projected.alpha),
+        gram_inv_root=T.materialize(keep, changed),
+        alpha_cov_root=Z.materialize(keep, changed, projected.alpha_cov_root),
+        timestamps=jnp.where(keep, timestamps, 0),
         mask=keep,
+        prior_mean=state.prior_mean,
     )
+    info = UpdateInfo(
+        added=add,
+        inserted_slot=jnp.where(add, j_new, -1).astype(jnp.int32),
+        deleted_slot=jnp.where(do, j, -1).astype(jnp.int32),
+        collapse=do & jnp.any(collapsed),
+    )
+    return new, info
+
+
+def _projected_update(state, proj, y, noise_variance, ok) -> SparseGPState:
+    """Steps 1 and 3 alone: the projected update of a point that does not join the set."""
+    Z, alpha, _, _ = _potter(_Pending(state.alpha_cov_root), state.alpha, state.prior_mean, proj.k,
+                             y, noise_variance, ok)
+    return state._replace(alpha=alpha, alpha_cov_root=Z.materialize(state.mask))
+
+
+@custom_batching.custom_vmap
+def _any_in_batch(flag):
+    """`flag` itself; under `jax.vmap`, whether it is True for any member of the batch (an
+    unbatched bool), so that `lax.cond` can skip a branch that no member needs."""
+    return flag
+
+
+@_any_in_batch.def_vmap
+def _any_in_batch_vmap(axis_size, in_batched, flag):
+    del axis_size
+    return (jnp.any(flag) if in_batched[0] else flag), False
 
 
 class UpdateInfo(NamedTuple):
@@ -467,7 +543,7 @@ def update_with_info(
     age_fn: str = "exp",
     logit_eps=1e-3,
     valid=True,
-) -> SparseGPState:
+):
     """One pair (x, y): project, insert if novel, observe, score, delete (SPEC §2), and what it did.
 
     x is novel if gamma >= gamma_min (`novelty_threshold`) and inserting it would leave at most
@@ -475,6 +551,11 @@ def update_with_info(
     observation one BV is deleted if the set holds M + 1 vectors or a BV has collapsed: the
     collapsed one if any, otherwise the one with the lowest score (eq. 13; the new point is among
     the candidates). A non-finite x or y, or ``valid=False``, leaves the state unchanged.
+
+    A point that does not join the set takes the projected update (steps 1 and 3), which touches
+    only alpha and Z. The insertion and deletion work runs in a `lax.cond` branch that is skipped
+    when no member of a `vmap` batch needs it (a member that does not is given the projected
+    update's result exactly, so a seed's result never depends on its batch-mates).
 
     Args:
       state: the current `SparseGPState` (its dtype is the computation dtype).
@@ -507,30 +588,16 @@ def update_with_info(
     max_precision = 1.0 / (jnp.asarray(collapse_fraction, dtype) * gamma_min)
 
     proj = project(state, x, hyper)
-    # Leave-one-out precisions Q_ii after a would-be insertion: Q_ii + e_hat_i^2 / gamma.
-    gamma_safe = jnp.where(proj.gamma >= gamma_min, proj.gamma, 1.0)
-    precision_after = leave_one_out_precision(state) + proj.e_hat**2 / gamma_safe
-    would_collapse = jnp.sum(state.mask & (precision_after > max_precision))
-    add = ok & (proj.gamma >= gamma_min) & (would_collapse <= 1)
+    projected = _projected_update(state, proj, y, hyper.noise_variance, ok)
+    none = UpdateInfo(jnp.zeros((), bool), -jnp.ones((), jnp.int32), -jnp.ones((), jnp.int32),
+                      jnp.zeros((), bool))
 
-    mask_before = state.mask
-    state, k_obs = insert(state, x, proj, timestamp, add)
-    state = observe(state, k_obs, y, hyper.noise_variance, ok)
+    def full():
+        return _full_update(state, projected, x, y, proj, hyper, timestamp, ok, gamma_min,
+                            max_precision, age_penalty, age_scale, age_fn, logit_eps)
 
-    precision = leave_one_out_precision(state)
-    collapsed = state.mask & (precision > max_precision)
-    eps = scores(state, age_penalty, age_scale, age_fn, logit_eps)
-    j = jnp.where(jnp.any(collapsed), jnp.argmax(jnp.where(collapsed, precision, -1.0)),
-                  jnp.argmin(eps))
-    over = jnp.sum(state.mask) > capacity(state)
-    do_delete = ok & (over | jnp.any(collapsed))
-    info = UpdateInfo(
-        added=add,
-        inserted_slot=jnp.where(add, jnp.argmin(mask_before), -1).astype(jnp.int32),
-        deleted_slot=jnp.where(do_delete, j, -1).astype(jnp.int32),
-        collapse=do_delete & jnp.any(collapsed),
-    )
-    return delete(state, j, do_delete), info
+    candidate = ok & (proj.gamma >= gamma_min)
+    return jax.lax.cond(_any_in_batch(candidate), full, lambda: (projected, none))
 
 
 def update_batch(
@@ -587,10 +654,16 @@ class Health(NamedTuple):
       finite: every entry of alpha, T, Z is finite.
       posterior_below_prior: Cov[alpha]_ii <= (1 + tol) Q_ii for every BV (a posterior variance
         cannot exceed the prior's; tol is 1e3 eps).
-      mean_in_range: at the given inputs, |mu(x) - y| <= (max y - min y) + margin_stds * sigma_f
-        for the given targets y (the GP has just taken them in).
+      mean_in_range: at the given inputs, |mu(x) - y| <= divergence_factor ((max y - min y) +
+        margin_stds sigma_f) for the given targets y, which the GP has just taken in. This is a
+        divergence detector, not an accuracy test: a budgeted GP with age-driven exchange
+        legitimately misses its latest targets by up to about the data range plus a few sigma_f
+        (ratios up to ~1 measured on the paper task at M = 30), while the diverged first
+        implementation missed them by 1e3 times the range.
       max_variance_ratio: max_i Cov[alpha]_ii / Q_ii.
       max_mean_error: max |mu(x) - y| over the given pairs.
+      mean_error_ratio: max_mean_error over (max y - min y + margin_stds sigma_f), the bound
+        without the divergence factor (mean_in_range is mean_error_ratio <= divergence_factor).
     """
 
     finite: jax.Array
@@ -598,6 +671,7 @@ class Health(NamedTuple):
     mean_in_range: jax.Array
     max_variance_ratio: jax.Array
     max_mean_error: jax.Array
+    mean_error_ratio: jax.Array
 
     @property
     def ok(self) -> jax.Array:
@@ -605,7 +679,7 @@ class Health(NamedTuple):
 
 
 def check(state: SparseGPState, hyper: kernels.KernelParams, xs, ys, valid=None,
-          margin_stds: float = 6.0) -> Health:
+          margin_stds: float = 6.0, divergence_factor: float = 10.0) -> Health:
     """Checks the invariants of `state` after it took in (xs, ys) (`Health`). O(N M + M^2).
 
     A GP that has diverged while staying finite (alpha ~ 1e36) fails `mean_in_range`; one whose
@@ -631,7 +705,8 @@ def check(state: SparseGPState, hyper: kernels.KernelParams, xs, ys, valid=None,
     return Health(
         finite=finite,
         posterior_below_prior=ratio <= 1.0 + tol,
-        mean_in_range=jnp.isfinite(err) & (err <= margin),
+        mean_in_range=jnp.isfinite(err) & (err <= divergence_factor * margin),
         max_variance_ratio=ratio,
         max_mean_error=err,
+        mean_error_ratio=err / margin,
     )

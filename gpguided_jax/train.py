@@ -88,6 +88,8 @@ class UpdateRecord(NamedTuple):
       fresh_bv_share: share of BVs stamped with this update (Fig. 1).
       gp_guard: episodes of this update whose GP update failed the health check
         (`sparse_gp.check`) and was therefore not taken in (the GP kept its state).
+      gp_mean_error_ratio: the health check's worst |mu(x_t) - Ret_t| over its bound, max over
+        the update's episodes (the guard fires above 1; how close a run came to it).
     """
 
     mean_reward: jax.Array
@@ -99,6 +101,7 @@ class UpdateRecord(NamedTuple):
     num_basis_vectors: jax.Array
     fresh_bv_share: jax.Array
     gp_guard: jax.Array
+    gp_mean_error_ratio: jax.Array
 
 
 class Episode(NamedTuple):
@@ -196,7 +199,8 @@ def take_in_episode(gp, kernel, xs, returns, update_index, cfg: TrainConfig):
     """Step 2: the GP takes in one episode's (x_t, Ret_t); rejected if the result is unhealthy.
 
     Returns:
-      (gp, guard_fired): the new GP (or the old one if `sparse_gp.check` failed) and 0/1.
+      (gp, guard_fired, health): the new GP (or the old one if `sparse_gp.check` failed), 0/1,
+      and the `sparse_gp.Health` of the new GP.
     """
     new_gp = sparse_gp.update_batch(
         gp, xs, returns, kernel, update_index,
@@ -205,9 +209,9 @@ def take_in_episode(gp, kernel, xs, returns, update_index, cfg: TrainConfig):
         age_scale=cfg.age_scale,
         age_fn=cfg.age_fn,
     )
-    healthy = sparse_gp.check(new_gp, kernel, xs, returns).ok
-    gp = jax.tree_util.tree_map(lambda n, o: jnp.where(healthy, n, o), new_gp, gp)
-    return gp, (~healthy).astype(jnp.int32)
+    health = sparse_gp.check(new_gp, kernel, xs, returns)
+    gp = jax.tree_util.tree_map(lambda n, o: jnp.where(health.ok, n, o), new_gp, gp)
+    return gp, (~health.ok).astype(jnp.int32), health
 
 
 def gradient_estimate(prog: Program, state: TrainState, eps: Episode, returns, gp):
@@ -260,14 +264,15 @@ def one_update(prog: Program, cfg: TrainConfig, state: TrainState):
         ctx = policy_context(cfg, gp, state.kernel)
         ep = rollout(prog, key_e, state.theta, ctx, prog.policy, cfg)
         returns = estimators.discounted_returns(ep.rewards, cfg.discount)
-        fired = jnp.zeros((), jnp.int32)
+        fired, error_ratio = jnp.zeros((), jnp.int32), jnp.zeros((), prog.dtype)
         if static.uses_gp:
-            gp, fired = take_in_episode(gp, state.kernel, _features(ep.states, ep.actions),
-                                        returns, t, cfg)
-        return gp, (ep, returns, fired)
+            gp, fired, health = take_in_episode(gp, state.kernel, _features(ep.states, ep.actions),
+                                                returns, t, cfg)
+            error_ratio = health.mean_error_ratio
+        return gp, (ep, returns, fired, error_ratio)
 
     keys = jax.random.split(key_eps, static.episodes_per_update)
-    gp, (eps, returns, fired) = jax.lax.scan(episode, state.gp, keys)
+    gp, (eps, returns, fired, error_ratio) = jax.lax.scan(episode, state.gp, keys)
     grad = gradient_estimate(prog, state, eps, returns, gp)
     theta, opt_state, grad_norm, finite, at_bound = optimiser_step(state, grad, cfg)
 
@@ -283,6 +288,7 @@ def one_update(prog: Program, cfg: TrainConfig, state: TrainState):
         num_basis_vectors=n_bv,
         fresh_bv_share=jnp.where(n_bv > 0, fresh / jnp.maximum(n_bv, 1), 0.0).astype(prog.dtype),
         gp_guard=jnp.sum(fired),
+        gp_mean_error_ratio=jnp.max(error_ratio),
     )
     return TrainState(theta, opt_state, gp, state.kernel, key, t + 1), record
 

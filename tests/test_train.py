@@ -120,17 +120,20 @@ def test_unknown_preset_and_field():
 
 @pytest.mark.parametrize("method", ["gp_pg", "guided_variance", "guided_direction"])
 def test_gp_methods_improve_on_a_small_problem(method):
-    """The paper preset's task at a reduced size (120 updates, M = 30, 4 fixed seeds).
+    """The paper preset's task at a reduced size (120 updates, M = 30, a smaller hyperparameter
+    fit; 4 fixed seeds), with the preset's K = 16 Gibbs candidates and gradient clipping.
 
     Loose threshold: the mean reward per step over the last 20 updates beats the first 20 by
-    0.01 on average over the seeds (measured: +0.035 to +0.048; the noise-free optimum is ~0.1
-    above the start).
+    0.01 on average over the seeds (measured: +0.049 to +0.060; the noise-free optimum is ~0.1
+    above the start). With K = 8 candidates (an earlier speed-up of this test) guided_direction
+    did not improve within 120 updates once the gradient was clipped at 300.
     """
     cfg = C.preset("paper", method=method, num_updates=120, gp_capacity=30, hyperfit_samples=500,
-                   hyperfit_steps=30, hyperfit_subset=300, num_candidates=8)
+                   hyperfit_steps=30, hyperfit_subset=300)
     _, rec = jax.jit(jax.vmap(T.make_train(cfg)))(jax.random.split(jax.random.PRNGKey(42), 4))
     r = np.asarray(rec.mean_reward)
     assert r[:, -20:].mean() > r[:, :20].mean() + 0.01, (r[:, :20].mean(1), r[:, -20:].mean(1))
+    assert np.all(np.asarray(rec.gp_guard) == 0) and np.all(np.asarray(rec.nonfinite_grad) == 0)
 
 
 def test_resume_equals_uninterrupted(tmp_path):
@@ -240,11 +243,11 @@ def test_gp_guard_rejects_a_diverged_gp_and_counts_it():
                    T.policy_context(cfg, state.gp, state.kernel), prog.policy, cfg)
     returns = T.estimators.discounted_returns(ep.rewards, cfg.discount)
     xs = jax.vmap(T.kernels.state_action_features)(ep.states, ep.actions)
-    gp, fired = T.take_in_episode(state.gp, state.kernel, xs, returns, 0, cfg)
+    gp, fired, _ = T.take_in_episode(state.gp, state.kernel, xs, returns, 0, cfg)
     assert int(fired) == 0 and int(T.sparse_gp.num_basis_vectors(gp)) > 0
     # A finite but diverged GP (alpha blown up, as the first implementation's) is not taken in.
     bad = gp._replace(alpha=gp.alpha * 1e30)
-    gp2, fired2 = T.take_in_episode(bad, state.kernel, xs, returns, 1, cfg)
-    assert int(fired2) == 1
+    gp2, fired2, health = T.take_in_episode(bad, state.kernel, xs, returns, 1, cfg)
+    assert int(fired2) == 1 and float(health.mean_error_ratio) > 1
     for a, b in zip(jax.tree_util.tree_leaves(gp2), jax.tree_util.tree_leaves(bad)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -1,0 +1,154 @@
+"""The README's result tables, generated from the committed result files.
+
+Every table in README.md between a pair of markers
+
+    <!-- generated: NAME -->
+    ...
+    <!-- end: NAME -->
+
+is produced by `TABLES[NAME]()` from files under docs/results/. `--write` rewrites the blocks in
+README.md; `--check` (and tests/test_readme.py) fails if any block differs from what its files
+give, so a number in a README table is always the number in the file it names.
+
+Usage:
+  python experiments/readme_tables.py --write     # after regenerating docs/results (make results)
+  python experiments/readme_tables.py --check
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import re
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+RESULTS = os.path.join(ROOT, "docs", "results")
+README = os.path.join(ROOT, "README.md")
+FAILURE_CAUSES = ("nonfinite_grad", "gp_guard", "nan_record", "std_at_bound", "below_zero_torque")
+
+
+def _rows(path: str) -> list[dict]:
+    with open(os.path.join(RESULTS, path), newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _source(*paths: str) -> str:
+    return "Source: " + ", ".join(f"`docs/results/{p}`" for p in paths) + "."
+
+
+def fig5_table(run: str = "paper_float64") -> str:
+    rows = _rows(f"{run}/summary.csv")
+    lines = ["| method | final, IQM | 95% CI (stratified bootstrap) | final, mean | 95% CI (t) | "
+             "first 10% of updates | updates to 90% |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        f = {k: float(v) for k, v in r.items() if k != "method"}
+        lines.append(
+            f"| {r['method']} | {f['final_iqm']:.3f} | [{f['iqm_ci95_low']:.3f}, {f['iqm_ci95_high']:.3f}] | "
+            f"{f['final_mean']:.3f} | [{f['ci95_low']:.3f}, {f['ci95_high']:.3f}] | "
+            f"{f['initial_mean']:.3f} | {f['updates_to_90pct']:.0f} |")
+    seeds = int(rows[0]["seeds"])
+    zero = float(rows[0]["zero_torque_reward"])
+    lines.append("")
+    lines.append(f"{seeds} seeds per method; zero-torque policy: {zero:.3f} per step. "
+                 + _source(f"{run}/summary.csv"))
+    return "\n".join(lines)
+
+
+def improvement_table(run: str = "paper_float64") -> str:
+    rows = _rows(f"{run}/comparisons.csv")
+    lines = ["| X | Y | P(X > Y) | 95% CI (bootstrap) |", "|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['x']} | {r['y']} | {float(r['p_improvement']):.2f} | "
+                     f"[{float(r['ci95_low']):.2f}, {float(r['ci95_high']):.2f}] |")
+    lines.append("")
+    lines.append(_source(f"{run}/comparisons.csv"))
+    return "\n".join(lines)
+
+
+def failures_table(runs=("paper_float64", "paper_float32")) -> str:
+    header = ("| method | dtype | seeds | non-finite gradient | GP guard fired | NaN in a record | "
+              "σ at a clip bound | final below zero-torque | failing seeds (any) |")
+    lines = [header, "|---|---|---|---|---|---|---|---|---|"]
+    by_run = {run: _rows(f"{run}/summary.csv") for run in runs}
+    methods = [r["method"] for r in by_run[runs[0]]]
+    for m in methods:
+        for run in runs:
+            r = next(x for x in by_run[run] if x["method"] == m)
+            dtype = run.rsplit("_", 1)[-1]
+            cells = " | ".join(r[f"fail_{c}"] for c in FAILURE_CAUSES)
+            lines.append(f"| {m} | {dtype} | {r['seeds']} | {cells} | {r['failing_seeds']} |")
+    lines.append("")
+    lines.append(_source(*(f"{run}/summary.csv" for run in runs)))
+    return "\n".join(lines)
+
+
+def consistency_table() -> str:
+    with open(os.path.join(RESULTS, "consistency", "consistency.json")) as f:
+        c = json.load(f)
+    lines = ["| method | seeds | batch vs alone: max \\|Δ\\| reward/step | batch vs alone: max \\|Δ\\| final | "
+             "float32 vs float64: median \\|Δ\\| final | max \\|Δ\\| final | IQM float64 [95% CI] | "
+             "IQM float32 [95% CI] |", "|---|---|---|---|---|---|---|---|"]
+    for m, b in c["batch_vs_alone"].items():
+        d = c["f32_vs_f64"][m]
+        lines.append(
+            f"| {m} | {b['seeds']} / {d['seeds']} | {b['max_abs_curve_diff']:.1e} | "
+            f"{b['max_abs_final_diff']:.1e} | {d['median_abs_final_diff']:.4f} | "
+            f"{d['max_abs_final_diff']:.4f} | {d['iqm_f64']:.3f} [{d['iqm_ci_f64'][0]:.3f}, "
+            f"{d['iqm_ci_f64'][1]:.3f}] | {d['iqm_f32']:.3f} [{d['iqm_ci_f32'][0]:.3f}, "
+            f"{d['iqm_ci_f32'][1]:.3f}] |")
+    lines.append("")
+    lines.append(_source("consistency/consistency.json"))
+    return "\n".join(lines)
+
+
+TABLES = {
+    "fig5": fig5_table,
+    "improvement": improvement_table,
+    "failures": failures_table,
+    "consistency": consistency_table,
+}
+BLOCK = re.compile(r"(<!-- generated: (\w+) -->\n)(.*?)(<!-- end: \2 -->)", re.S)
+
+
+def render(text: str) -> str:
+    """README text with every generated block replaced by what its files give."""
+    def sub(m):
+        name = m.group(2)
+        if name not in TABLES:
+            raise KeyError(f"README block {name!r} has no generator; known: {sorted(TABLES)}")
+        return m.group(1) + TABLES[name]() + "\n" + m.group(4)
+
+    return BLOCK.sub(sub, text)
+
+
+def blocks(text: str) -> dict[str, str]:
+    return {m.group(2): m.group(3) for m in BLOCK.finditer(text)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    mode = ap.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--write", action="store_true", help="rewrite the blocks in README.md")
+    mode.add_argument("--check", action="store_true", help="exit 1 if a block is stale")
+    args = ap.parse_args(argv)
+    with open(README) as f:
+        text = f.read()
+    new = render(text)
+    if args.write:
+        with open(README, "w") as f:
+            f.write(new)
+        print(f"rewrote {len(blocks(new))} blocks in {README}")
+        return 0
+    stale = [k for k, v in blocks(new).items() if blocks(text).get(k) != v]
+    if stale:
+        print(f"stale README blocks: {stale}; run python experiments/readme_tables.py --write")
+        return 1
+    print(f"{len(blocks(text))} README blocks match their files")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
