@@ -47,16 +47,7 @@ def build_gp(state, num_points=25):
     actions = np.linspace(-ACTION_RANGE, ACTION_RANGE, num_points)
     xs = jax.vmap(kernels.state_action_features, (None, 0))(state, jnp.asarray(actions))
     hyper = kernels.make_kernel_params(jnp.array([1.0, 1.0, 1.0, 0.7]), 10.0, 0.01)
-    reg = kernels.gram(xs, xs, hyper) + hyper.noise_variance * jnp.eye(num_points)
-    reg_inv = jnp.linalg.inv(reg)
-    gp = sparse_gp.SparseGPState(
-        basis_vectors=xs,
-        alpha=reg_inv @ jnp.asarray(two_peaked_q(actions)),
-        C=-0.5 * (reg_inv + reg_inv.T),
-        Q=jnp.linalg.inv(kernels.gram(xs, xs, hyper) + 1e-10 * jnp.eye(num_points)),
-        timestamps=jnp.zeros((num_points,), jnp.int32),
-        mask=jnp.ones((num_points,), bool),
-    )
+    gp = sparse_gp.exact_state(xs, jnp.asarray(two_peaked_q(actions)), hyper, jitter=1e-10)
     return gp, hyper
 
 

@@ -37,23 +37,9 @@ def _exact_gp(key, state, action_centre, n_active, alpha_scale):
     basis = jax.vmap(kernels.state_action_features)(states, actions)
     lengthscales = jnp.exp(jax.random.uniform(k_hyper, (4,), minval=jnp.log(0.3), maxval=1.1))
     hyper = kernels.make_kernel_params(lengthscales, 2.0, 0.1)
-    mask = jnp.arange(SLOTS) < n_active
-    both = mask[:, None] & mask[None, :]
-    eye = jnp.eye(SLOTS)
-    reg_inv = jnp.linalg.inv(
-        jnp.where(both, kernels.gram(basis, basis, hyper) + hyper.noise_variance * eye, eye)
-    )
-    reg_inv = 0.5 * (reg_inv + reg_inv.T)
     y = 3.0 * jax.random.normal(k_y, (SLOTS,)) - 5.0
-    gp = sparse_gp.SparseGPState(
-        basis_vectors=basis,
-        alpha=alpha_scale * jnp.where(mask, reg_inv @ y, 0.0),
-        C=jnp.where(both, -reg_inv, 0.0),
-        Q=jnp.zeros((SLOTS, SLOTS)),
-        timestamps=jnp.zeros((SLOTS,), jnp.int32),
-        mask=mask,
-    )
-    return gp, hyper
+    gp = sparse_gp.exact_state(basis, y, hyper, capacity=SLOTS, num_active=n_active)
+    return gp._replace(alpha=alpha_scale * gp.alpha), hyper
 
 
 def _random_case(key, policy, controller):

@@ -88,7 +88,8 @@ def failures_table(runs=("paper_float64", "paper_float32")) -> str:
 def consistency_table() -> str:
     with open(os.path.join(RESULTS, "consistency", "consistency.json")) as f:
         c = json.load(f)
-    lines = ["| method | seeds | batch vs alone: max \\|Δ\\| reward/step | batch vs alone: max \\|Δ\\| final | "
+    lines = ["| method | seeds | batch vs alone: max \\|Δ\\| reward/step | "
+             "batch vs alone: max \\|Δ\\| final | "
              "float32 vs float64: median \\|Δ\\| final | max \\|Δ\\| final | IQM float64 [95% CI] | "
              "IQM float32 [95% CI] |", "|---|---|---|---|---|---|---|---|"]
     for m, b in c["batch_vs_alone"].items():

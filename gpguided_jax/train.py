@@ -341,7 +341,9 @@ def initial_state(prog: Program, key, cfg: TrainConfig, prior: GPPrior | None = 
     prior = jax.tree_util.tree_map(lambda a: jnp.asarray(a, prog.dtype), prior)
     theta = initial_theta(prog, cfg)
     opt_state = make_optimizer(cfg).init(theta)
-    gp = sparse_gp.init(static.gp_capacity, FEATURE_DIM, prog.dtype, prior_mean=prior.mean)
+    # REINFORCE never reads its GP: a one-slot placeholder keeps the state's structure small.
+    capacity = static.gp_capacity if static.uses_gp else 1
+    gp = sparse_gp.init(capacity, FEATURE_DIM, prog.dtype, prior_mean=prior.mean)
     return TrainState(theta, opt_state, gp, prior.kernel, key_run, jnp.zeros((), jnp.int32))
 
 

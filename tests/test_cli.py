@@ -49,7 +49,8 @@ def test_import_does_not_touch_the_x64_flag():
 def test_float64_without_x64_is_refused_with_advice():
     proc = _python("from gpguided_jax import config; config.preset('tiny')", JAX_ENABLE_X64="0")
     assert proc.returncode != 0 and "enable_x64" in proc.stderr
-    proc = _python("from gpguided_jax import config; print(config.preset('tiny', dtype='float32').learning_rate.dtype)",
+    proc = _python("from gpguided_jax import config; "
+                   "print(config.preset('tiny', dtype='float32').learning_rate.dtype)",
                    JAX_ENABLE_X64="0")
     assert proc.returncode == 0 and proc.stdout.strip() == "float32", proc.stderr
 

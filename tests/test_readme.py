@@ -22,7 +22,7 @@ def test_every_generated_block_matches_its_files():
     found = readme_tables.blocks(text)
     assert set(found) == set(readme_tables.TABLES), sorted(found)
     for name, body in readme_tables.blocks(readme_tables.render(text)).items():
-        assert found[name] == body, f"README block {name!r} is stale: run experiments/readme_tables.py --write"
+        assert found[name] == body, f"README block {name!r} is stale: run readme_tables.py --write"
 
 
 def test_fig5_numbers_equal_the_summary_file_independently():

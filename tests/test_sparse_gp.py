@@ -317,7 +317,8 @@ def test_repeated_inputs_match_the_projected_process_posterior(dtype, sf2_over_s
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
 def test_one_input_repeated_ten_thousand_times(dtype):
     """The extreme duplicate: one x, 10^4 noisy observations. The posterior is that of a scalar
-    Gaussian: mean (sum y)/(n + sigma_n^2/sigma_f^2), variance sigma_n^2 sigma_f^2/(n sigma_f^2 + sigma_n^2)."""
+    Gaussian: mean (sum y)/(n + sigma_n^2/sigma_f^2),
+    variance sigma_n^2 sigma_f^2/(n sigma_f^2 + sigma_n^2)."""
     n, sf2, sn2 = 10_000, 5.0, 1e-3
     rng = np.random.default_rng(3)
     x = np.array([0.3, -0.2, 1.0, 2.0])

@@ -1,0 +1,160 @@
+"""Where the time of a training run goes, per method (paper preset, all seeds as one vmapped program).
+
+The per-update computation (gpguided_jax.train.one_update) is split into its parts, each compiled
+on its own and timed over `--updates` updates for all seeds at a realistic point of a run (the
+state after `--warmup` updates, when the GP holds its basis vectors):
+
+* rollout_fixed_noise: the episodes with the fixed-noise policy (pendulum + linear controller);
+* rollout_policy: the episodes with the method's own policy; the difference to the fixed-noise
+  roll-out is the policy's GP work (guided variance: sigma^2 and its gradient at every step;
+  Gibbs: the candidates' GP means and the candidate variance);
+* gp_update: the sparse GP taking in the episodes' pairs (`take_in_episode`, health check included);
+* prediction: Q_GP at the update's state-action pairs (eq. 9's weights);
+* full_update: one_update itself (everything, as the training loop runs it).
+
+For the full update the compiled program's own FLOP count (XLA cost analysis) gives the achieved
+FLOP/s. Host work between chunks (device-to-host copy of the records and the checkpoint write) is
+timed on a `reproduce.run_method` call. Prints JSON.
+
+Usage:
+  python experiments/profile_train.py --seeds 10 [--methods ...] [--updates 50]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import gpguided_jax
+from gpguided_jax import config as config_lib
+from gpguided_jax import estimators, reproduce, sparse_gp
+from gpguided_jax import train as T
+
+gpguided_jax.enable_x64()
+
+
+def _time(fn, *args, repeats=3):
+    out = fn(*args)
+    jax.block_until_ready(out)
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def _flops(compiled) -> float:
+    cost = compiled.cost_analysis()
+    if isinstance(cost, list):  # older jax returned one dict per device
+        cost = cost[0]
+    return float(cost.get("flops", float("nan"))) if cost else float("nan")
+
+
+def profile_method(method: str, seeds: list[int], updates: int, warmup: int, dtype: str) -> dict:
+    cfg = config_lib.preset("paper", method=method, dtype=dtype)
+    prog = T.make_program(cfg)
+    train = T.make_train(cfg)
+    keys = reproduce.seed_keys(seeds)
+    state = jax.jit(jax.vmap(train.init))(keys)
+    state, _ = jax.jit(jax.vmap(lambda s: train.run_chunk(s, cfg, warmup)))(state)
+    jax.block_until_ready(state)
+    E = cfg.episodes_per_update
+
+    def episodes(state, policy):
+        def one(gp, key):
+            ep = T.rollout(prog, key, state.theta, T.policy_context(cfg, gp, state.kernel), policy, cfg)
+            return gp, ep
+        return jax.lax.scan(one, state.gp, jax.random.split(state.key, E))[1]
+
+    def repeat(body):
+        """`body(state) -> state` scanned `updates` times, vmapped over seeds, jitted."""
+        return jax.jit(jax.vmap(lambda s: jax.lax.scan(lambda c, _: (body(c), None), s, None,
+                                                       length=updates)[0]))
+
+    def rollout_body(policy):
+        def body(s):
+            eps = episodes(s, policy)
+            # feed something back so the loop is not hoisted: the next key depends on the rewards
+            key = jax.random.fold_in(s.key, jnp.sum(eps.rewards > 0).astype(jnp.int32))
+            return s._replace(key=key)
+        return body
+
+    eps = jax.jit(jax.vmap(lambda s: episodes(s, prog.policy)))(state)
+    returns = jax.vmap(jax.vmap(estimators.discounted_returns, (0, None)))(eps.rewards, cfg.discount)
+    feats = jax.vmap(jax.vmap(T._features))(eps.states, eps.actions)
+
+    out = {}
+    out["rollout_fixed_noise_s"] = _time(repeat(rollout_body(prog.behaviour)), state)
+    out["rollout_policy_s"] = _time(repeat(rollout_body(prog.policy)), state)
+    if cfg.uses_gp:
+        # the same episodes' data every time (the GP keeps changing, as in training)
+        gp_fn = jax.jit(jax.vmap(lambda s, f, r: jax.lax.scan(
+            lambda c, _: (_gp(c, f, r), None), s, None, length=updates)[0]))
+
+        def _gp(s, f, r):
+            gp = s.gp
+            for e in range(E):
+                gp, _, _ = T.take_in_episode(gp, s.kernel, f[e], r[e], s.update_index, cfg)
+            return s._replace(gp=gp)
+
+        out["gp_update_s"] = _time(gp_fn, state, feats, returns)
+        pred_fn = jax.jit(jax.vmap(lambda s, f: jax.lax.scan(
+            lambda acc, _: (acc + jnp.sum(jax.vmap(jax.vmap(
+                lambda x: sparse_gp.predict(s.gp, x + 1e-9 * acc, s.kernel)[0]))(f)), None),
+            jnp.zeros((), s.gp.alpha.dtype), None, length=updates)[0]))
+        out["prediction_s"] = _time(pred_fn, state, feats)
+    full = jax.jit(jax.vmap(lambda s: train.run_chunk(s, cfg, updates)))
+    compiled = full.lower(state).compile()
+    out["full_update_s"] = _time(compiled, state)
+    out["full_update_flops"] = _flops(compiled)
+    out["achieved_gflops_per_s"] = out["full_update_flops"] / out["full_update_s"] / 1e9
+    out["per_update_ms"] = 1e3 * out["full_update_s"] / updates
+    return out
+
+
+def host_overhead(seeds: list[int], chunk: int) -> dict:
+    """Wall time of `reproduce.run_method` minus its compiled chunks: copies and checkpoints."""
+    cfg = config_lib.preset("paper", method="reinforce", num_updates=4 * chunk)
+    with tempfile.TemporaryDirectory() as d:
+        reproduce.run_method(cfg, seeds, d, chunk_size=chunk, progress=lambda m: None)  # compile
+        os.remove(os.path.join(d, "checkpoint_reinforce.npz"))
+        t0 = time.perf_counter()
+        reproduce.run_method(cfg, seeds, d, chunk_size=chunk, progress=lambda m: None)
+        wall = time.perf_counter() - t0
+    train = T.make_train(cfg)
+    state = jax.jit(jax.vmap(train.init))(reproduce.seed_keys(seeds))
+    run = jax.jit(jax.vmap(lambda s: train.run_chunk(s, cfg, chunk)))
+    device = 4 * _time(run, state)
+    return {"chunks": 4, "wall_s": wall, "device_s": device, "host_s_per_chunk": (wall - device) / 4}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--methods", nargs="+", default=list(config_lib.METHODS))
+    ap.add_argument("--updates", type=int, default=50)
+    ap.add_argument("--warmup", type=int, default=100)
+    ap.add_argument("--dtype", default="float64", choices=["float64", "float32"])
+    args = ap.parse_args(argv)
+    seeds = list(range(100, 100 + args.seeds))  # tuning seeds: this is not a result
+    result = {"seeds": args.seeds, "updates": args.updates, "warmup": args.warmup, "dtype": args.dtype,
+              "jax": jax.__version__, "devices": [str(d) for d in jax.devices()], "methods": {}}
+    for m in args.methods:
+        result["methods"][m] = profile_method(m, seeds, args.updates, args.warmup, args.dtype)
+        print(m, json.dumps(result["methods"][m]), file=sys.stderr, flush=True)
+    result["host"] = host_overhead(seeds, args.updates)
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
