@@ -386,6 +386,18 @@ def leave_one_out_precision(state: SparseGPState) -> jax.Array:
     return jnp.sum(T * T, axis=0)
 
 
+def scores(state: SparseGPState, age_penalty=0.0, age_scale=1.0, age_fn: str = "exp",
+           logit_eps=1e-3) -> jax.Array:
+    """Step 4 (eq. 13) on a state: eps_i = alpha_i^2 / (Q + C)_ii + lambda g(t_i); +inf on
+    inactive slots. (Q + C)_ii = |Z e_i|^2 is the posterior variance of alpha_i."""
+    dtype = state.alpha.dtype
+    var_alpha = jnp.sum(state.alpha_cov_root**2, axis=0)
+    kl = jnp.where(var_alpha > 0, state.alpha**2 / jnp.where(var_alpha > 0, var_alpha, 1.0), jnp.inf)
+    g = age_function(state.timestamps, state.mask, jnp.asarray(age_scale, dtype), age_fn,
+                     jnp.asarray(logit_eps, dtype))
+    return jnp.where(state.mask, kl + jnp.asarray(age_penalty, dtype) * g, jnp.inf)
+
+
 def _potter(Z: _Pending, alpha, prior_mean, k_obs, y, noise_variance, ok):
     """Step 3 (eq. 7-8): y = k_obs^T alpha + noise, Potter's square-root update (module notes).
 
@@ -414,67 +426,113 @@ def _reflect_out(X: _Pending, j, do, col, col_row) -> _Pending:
     return X.plus(-coef * v, col_row / safe + sign * X.row(j))
 
 
+class _Work(NamedTuple):
+    """One update in progress: the state with T and Z as pending writes, and the diagonals
+    Q_ii (`precision`) and Cov[alpha]_ii (`var_alpha`) kept up to date by exact identities."""
+
+    T: _Pending
+    Z: _Pending
+    alpha: jax.Array
+    mask: jax.Array
+    timestamps: jax.Array
+    precision: jax.Array
+    var_alpha: jax.Array
+
+
+def _insert(state, proj, timestamp, ok, gamma_min, max_precision):
+    """Step 2 (eq. 10-11): if x is novel and collapses at most one BV, T and Z gain the row
+    t = (e_j - Q k) / sqrt(gamma) in the free slot j (module notes).
+
+    Returns:
+      (work, add, j, k_obs): k_obs is x's kernel vector against the new set (k + k** e_j).
+    """
+    dtype = state.alpha.dtype
+    e_hat = proj.w @ state.gram_inv_root  # Q k
+    novel = proj.gamma >= gamma_min
+    inv_sqrt_gamma = jax.lax.rsqrt(jnp.where(novel, proj.gamma, 1.0))
+    j = jnp.argmin(state.mask)  # the first free slot; one always exists (<= M of M+1 active)
+    row = (-e_hat * inv_sqrt_gamma).at[j].set(inv_sqrt_gamma)
+    precision = leave_one_out_precision(state)  # Q_ii; after an insertion Q_ii + t_i^2
+    precision_after = precision + row * row
+    add = ok & novel & (jnp.sum(state.mask & (precision_after > max_precision)) <= 1)
+    onehot = ((jnp.arange(state.alpha.shape[0]) == j) & add).astype(dtype)
+    row = jnp.where(add, row, 0.0)
+    work = _Work(
+        T=_Pending(state.gram_inv_root).plus(onehot, row),
+        Z=_Pending(state.alpha_cov_root).plus(onehot, row),
+        alpha=state.alpha,
+        mask=state.mask | (onehot > 0),
+        timestamps=jnp.where(onehot > 0, jnp.asarray(timestamp, jnp.int32), state.timestamps),
+        precision=jnp.where(add, precision_after, precision),
+        var_alpha=jnp.sum(state.alpha_cov_root**2, axis=0) + row * row,
+    )
+    return work, add, j, proj.k + onehot * proj.kxx
+
+
+def _observe(work: _Work, prior_mean, k_obs, y, noise_variance, ok) -> _Work:
+    """Step 3 (eq. 7-8): Potter's update of the Gaussian over alpha with y."""
+    Z, alpha, g, d = _potter(work.Z, work.alpha, prior_mean, k_obs, y, noise_variance, ok)
+    # diag(Z^T Z) after the Potter step: Cov[alpha] - g g^T / d (exact identity)
+    return work._replace(Z=Z, alpha=alpha, var_alpha=work.var_alpha - g * g / d)
+
+
+def _choose(work: _Work, capacity_m, ok, max_precision, age_penalty, age_scale, age_fn, logit_eps):
+    """Step 4 (eq. 13): which BV to delete, and whether to: a collapsed BV if any (1/Q_ii below
+    collapse_fraction gamma_min), else the lowest score, if the set is over capacity.
+
+    Returns:
+      (j, do, collapse).
+    """
+    dtype = work.alpha.dtype
+    age = age_function(work.timestamps, work.mask, jnp.asarray(age_scale, dtype), age_fn,
+                       jnp.asarray(logit_eps, dtype))
+    v = work.var_alpha
+    kl = jnp.where(v > 0, work.alpha**2 / jnp.where(v > 0, v, 1.0), jnp.inf)
+    score = jnp.where(work.mask, kl + jnp.asarray(age_penalty, dtype) * age, jnp.inf)
+    collapsed = work.mask & (work.precision > max_precision)
+    collapse = jnp.any(collapsed)
+    j = jnp.where(collapse, jnp.argmax(jnp.where(collapsed, work.precision, -1.0)),
+                  jnp.argmin(score))
+    do = ok & ((jnp.sum(work.mask) > capacity_m) | collapse)
+    return j, do, do & collapse
+
+
+def _delete(work: _Work, j, do) -> _Work:
+    """Step 5 (KL-optimal deletion): condition alpha on alpha_j = 0; rotate the conditioned-out
+    direction into row j of Z and of T (Householder), which are then dropped with slot j."""
+    col = work.Z.column(j)
+    cov_row = work.Z.rmatvec(col)  # Cov[alpha] e_j
+    var_j = col @ col
+    shift = jnp.where(do & (var_j > 0), work.alpha[j] / jnp.where(var_j > 0, var_j, 1.0), 0.0)
+    tau = work.T.column(j)
+    return work._replace(
+        alpha=work.alpha - shift * cov_row,
+        Z=_reflect_out(work.Z, j, do, col, cov_row),
+        T=_reflect_out(work.T, j, do, tau, work.T.rmatvec(tau)),
+        mask=work.mask & ~(do & (jnp.arange(work.mask.shape[0]) == j)),
+    )
+
+
 def _full_update(state, projected, x, y, proj, hyper, timestamp, ok, gamma_min, max_precision,
                  age_penalty, age_scale, age_fn, logit_eps):
     """Steps 2-5 for a point that may join the set (see `update_with_info`); `projected` is the
     state after the projected update, the result if x neither joins nor causes a deletion."""
-    dtype = state.alpha.dtype
-    slots = jnp.arange(state.alpha.shape[0])
-    T, Z = _Pending(state.gram_inv_root), _Pending(state.alpha_cov_root)
-
-    # Step 2, insert: T and Z gain the row t = (e_j - e_hat) / sqrt(gamma) in the free slot j.
-    e_hat = proj.w @ state.gram_inv_root  # Q k
-    novel = proj.gamma >= gamma_min
-    row = -e_hat * jax.lax.rsqrt(jnp.where(novel, proj.gamma, 1.0))
-    j_new = jnp.argmin(state.mask)  # the first free slot; one always exists (<= M of M+1 active)
-    row = row.at[j_new].set(jax.lax.rsqrt(jnp.where(novel, proj.gamma, 1.0)))
-    precision = leave_one_out_precision(state)  # Q_ii, and after an insertion Q_ii + t_i^2:
-    precision_after = precision + row * row
-    collapsing = jnp.sum(state.mask & (precision_after > max_precision))
-    add = ok & novel & (collapsing <= 1)
-    onehot = ((slots == j_new) & add).astype(dtype)
-    row = jnp.where(add, row, 0.0)
-    T, Z = T.plus(onehot, row), Z.plus(onehot, row)
-    precision = jnp.where(add, precision_after, precision)
-    mask = state.mask | (onehot > 0)
-    k_obs = proj.k + onehot * proj.kxx
-
-    # Step 3, observe.
-    var_alpha = jnp.sum(state.alpha_cov_root**2, axis=0) + row * row  # diag Cov[alpha], inserted
-    Z, alpha, g, d = _potter(Z, state.alpha, state.prior_mean, k_obs, y, hyper.noise_variance, ok)
-    var_alpha = var_alpha - g * g / d  # diag(Z^T Z) after the Potter step (exact identity)
-
-    # Step 4, score (eq. 13), and the choice: a collapsed BV if any, else the lowest score.
-    timestamps = jnp.where(onehot > 0, jnp.asarray(timestamp, jnp.int32), state.timestamps)
-    age = age_function(timestamps, mask, jnp.asarray(age_scale, dtype), age_fn,
-                       jnp.asarray(logit_eps, dtype))
-    kl = jnp.where(var_alpha > 0, alpha**2 / jnp.where(var_alpha > 0, var_alpha, 1.0), jnp.inf)
-    score = jnp.where(mask, kl + jnp.asarray(age_penalty, dtype) * age, jnp.inf)
-    collapsed = mask & (precision > max_precision)
-    j = jnp.where(jnp.any(collapsed), jnp.argmax(jnp.where(collapsed, precision, -1.0)),
-                  jnp.argmin(score))
-    do = ok & ((jnp.sum(mask) > capacity(state)) | jnp.any(collapsed))
-
-    # Step 5, delete (KL-optimal): condition alpha on alpha_j = 0, rotate row j out of T and Z.
-    col = Z.column(j)
-    cov_row = Z.rmatvec(col)  # Cov[alpha] e_j
-    var_j = col @ col
-    shift = jnp.where(do & (var_j > 0), alpha[j] / jnp.where(var_j > 0, var_j, 1.0), 0.0)
-    alpha = alpha - shift * cov_row
-    Z = _reflect_out(Z, j, do, col, cov_row)
-    tau = T.column(j)
-    T = _reflect_out(T, j, do, tau, T.rmatvec(tau))
-    keep = mask & ~(do & (slots == j))
+    work, add, j_new, k_obs = _insert(state, proj, timestamp, ok, gamma_min, max_precision)
+    work = _observe(work, state.prior_mean, k_obs, y, hyper.noise_variance, ok)
+    j, do, collapse = _choose(work, capacity(state), ok, max_precision, age_penalty, age_scale,
+                              age_fn, logit_eps)
+    work = _delete(work, j, do)
+    keep = work.mask
     # A member that neither inserts nor deletes takes the projected update's result, bit for bit
     # (written in the same pass as this update's own writes).
     changed = add | do
+    new_bv = state.basis_vectors.at[j_new].set(jnp.where(add, x, state.basis_vectors[j_new]))
     new = SparseGPState(
-        basis_vectors=jnp.where(keep[:, None], state.basis_vectors.at[j_new].set(
-            jnp.where(add, x, state.basis_vectors[j_new])), 0.0),
-        alpha=jnp.where(changed, jnp.where(keep, alpha, 0.0), projected.alpha),
-        gram_inv_root=T.materialize(keep, changed),
-        alpha_cov_root=Z.materialize(keep, changed, projected.alpha_cov_root),
-        timestamps=jnp.where(keep, timestamps, 0),
+        basis_vectors=jnp.where(keep[:, None], new_bv, 0.0),
+        alpha=jnp.where(changed, jnp.where(keep, work.alpha, 0.0), projected.alpha),
+        gram_inv_root=work.T.materialize(keep, changed),
+        alpha_cov_root=work.Z.materialize(keep, changed, projected.alpha_cov_root),
+        timestamps=jnp.where(keep, work.timestamps, 0),
         mask=keep,
         prior_mean=state.prior_mean,
     )
@@ -482,7 +540,7 @@ def _full_update(state, projected, x, y, proj, hyper, timestamp, ok, gamma_min, 
         added=add,
         inserted_slot=jnp.where(add, j_new, -1).astype(jnp.int32),
         deleted_slot=jnp.where(do, j, -1).astype(jnp.int32),
-        collapse=do & jnp.any(collapsed),
+        collapse=collapse,
     )
     return new, info
 
