@@ -89,7 +89,8 @@ def profile_method(method: str, seeds: list[int], updates: int, warmup: int, dty
         return body
 
     eps = jax.jit(jax.vmap(lambda s: episodes(s, prog.policy)))(state)
-    returns = jax.vmap(jax.vmap(estimators.discounted_returns, (0, None)))(eps.rewards, cfg.discount)
+    returns = jax.vmap(jax.vmap(estimators.discounted_returns, (0, None)), (0, None))(
+        eps.rewards, cfg.discount)
     feats = jax.vmap(jax.vmap(T._features))(eps.states, eps.actions)
 
     out = {}

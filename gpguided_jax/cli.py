@@ -29,6 +29,20 @@ def non_negative_int(text: str) -> int:
     return value
 
 
+DEFAULT_COMPILE_CACHE = os.environ.get(
+    "GPGUIDED_COMPILE_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "gpguided_jax", "xla"))
+
+
+def _set_compile_cache(path: str | None) -> None:
+    """JAX's persistent compilation cache (works on CPUs with jax 0.9): a repeated run loads its
+    compiled programs instead of compiling them again. 'none' turns it off."""
+    if path and path.lower() != "none":
+        import jax
+
+        os.makedirs(path, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", path)
+
+
 def _set_precision(dtype: str) -> None:
     """float64 runs need JAX's 64-bit mode; this process is ours, so switch it as asked."""
     import gpguided_jax
@@ -89,9 +103,27 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+def _start_processes(args) -> None:
+    """`jax.distributed.initialize` from --coordinator/--num-processes/--process-id (all or none)."""
+    given = [args.coordinator is not None, args.num_processes is not None, args.process_id is not None]
+    if not any(given):
+        return
+    if not all(given):
+        raise SystemExit("gpguided reproduce: error: --coordinator, --num-processes and --process-id "
+                         "go together")
+    if args.process_id >= args.num_processes:
+        raise SystemExit(f"gpguided reproduce: error: --process-id must be < --num-processes "
+                         f"({args.num_processes}), got {args.process_id}")
+    from gpguided_jax import distributed
+
+    distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+
+
 def _cmd_reproduce(args) -> int:
+    _start_processes(args)
     _set_precision(args.dtype)
-    from gpguided_jax import reproduce
+    _set_compile_cache(args.compile_cache)
+    from gpguided_jax import distributed, reproduce
 
     seeds = list(range(args.seed_start, args.seed_start + args.seeds))
     out = reproduce.reproduce(
@@ -106,6 +138,8 @@ def _cmd_reproduce(args) -> int:
     )
     if not out["complete"]:
         print(f"stopped early (--max-chunks); run the same command again to resume from {args.out}")
+        return 0
+    if not distributed.is_main():
         return 0
     print(out["markdown"])
     for path in out["figures"]:
@@ -130,8 +164,25 @@ def _parse_overrides(items: list[str] | None) -> dict:
     return out
 
 
+def _cmd_bench(args) -> int:
+    _set_precision("float64")
+    import json
+
+    from gpguided_jax import bench, reproduce
+
+    report = bench.run(repeats=args.repeats, seeds=args.seeds, numpy_updates=args.numpy_updates,
+                       quick=args.quick, paper_run=not args.no_paper_run)
+    text = json.dumps(report, indent=2)
+    if args.out:
+        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+        reproduce.atomic_write_text(args.out, text + "\n")
+    print(text)
+    return 0
+
+
 def _cmd_sweep(args) -> int:
     _set_precision(args.dtype)
+    _set_compile_cache(args.compile_cache)
     from gpguided_jax import sweep
 
     try:
@@ -190,6 +241,16 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--chunk-size", type=positive_int, default=50, help="updates per compiled chunk")
     rep.add_argument("--devices", type=positive_int, default=None,
                      help="use at most this many devices")
+    rep.add_argument("--compile-cache", default=DEFAULT_COMPILE_CACHE, metavar="DIR",
+                     help="JAX's persistent compilation cache, so that a repeated run does not "
+                     "compile again (default %(default)s; 'none' turns it off)")
+    rep.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                     help="several processes (jax.distributed): process 0's address, the same "
+                     "for every process")
+    rep.add_argument("--num-processes", type=positive_int, default=None,
+                     help="several processes: how many in all")
+    rep.add_argument("--process-id", type=non_negative_int, default=None,
+                     help="several processes: this one's index, 0 .. N-1 (0 writes the results)")
     rep.add_argument("--max-chunks", type=int, default=None, help=argparse.SUPPRESS)
     rep.set_defaults(func=_cmd_reproduce)
 
@@ -225,7 +286,26 @@ def build_parser() -> argparse.ArgumentParser:
                     help="further config overrides, e.g. --set gp_capacity=50 optimizer=adam")
     sw.add_argument("--devices", type=positive_int, default=None,
                     help="use at most this many devices")
+    sw.add_argument("--compile-cache", default=DEFAULT_COMPILE_CACHE, metavar="DIR",
+                    help="JAX's persistent compilation cache ('none' turns it off)")
     sw.set_defaults(func=_cmd_sweep)
+
+    be = sub.add_parser(
+        "bench",
+        help="run the benchmarks and print (and write) a JSON report",
+        description="Environment, sparse GP (against the NumPy reference), hyperparameter fit, "
+        "training per method (against a per-seed NumPy loop), and the whole `gpguided reproduce` "
+        "command cold and warm; medians of --repeats runs. See gpguided_jax/bench.py.",
+    )
+    be.add_argument("--repeats", type=positive_int, default=3, help="runs per figure (median)")
+    be.add_argument("--seeds", type=positive_int, default=10, help="seeds of the paper run")
+    be.add_argument("--numpy-updates", type=positive_int, default=5,
+                    help="updates of the per-seed NumPy loop (extrapolated)")
+    be.add_argument("--no-paper-run", action="store_true",
+                    help="skip the whole-command timing (the slowest part)")
+    be.add_argument("--quick", action="store_true", help="tiny sizes (a smoke test)")
+    be.add_argument("--out", default=None, help="also write the JSON here")
+    be.set_defaults(func=_cmd_bench)
     return ap
 
 

@@ -59,7 +59,7 @@ class TrainConfig:
       gp_capacity: M, the basis-vector budget of the sparse GP.
       hyperfit_samples: (state-action, return) pairs from the initial policy for the hyperparameter
         fit; rounded up to whole episodes.
-      hyperfit_steps: Adam steps of the marginal-likelihood fit.
+      hyperfit_steps: L-BFGS iterations of the marginal-likelihood fit (`hyperfit.fit`).
       hyperfit_subset: the marginal likelihood is that of a random subset of this many of the
         collected pairs (a 2000-point Cholesky per Adam step costs ~1 s on a 2-core CPU; 500
         points cost 1/64 of it). Set it >= hyperfit_samples to use every pair.
@@ -103,7 +103,7 @@ class TrainConfig:
     episode_length: int = 50
     gp_capacity: int = 100
     hyperfit_samples: int = 2000
-    hyperfit_steps: int = 100
+    hyperfit_steps: int = 15
     hyperfit_subset: int = 500
     num_candidates: int = 16
     controller: str = "linear"

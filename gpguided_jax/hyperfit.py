@@ -5,17 +5,24 @@ the zero-mean ARD squared-exponential prior with Gaussian noise,
 
   -log p(y | X) = 1/2 y^T (K + sigma_n^2 I)^{-1} y + sum_i log L_ii + N/2 log(2 pi),
 
-with L the Cholesky factor of K + sigma_n^2 I, is minimised by Adam (optax) over the
-log-parameters (log l_1..l_D, log sigma_f^2, log sigma_n^2) in a `lax.scan`, so one fit is one
-compiled program and `jax.vmap(fit)` fits several seeds' data sets at once.
+with L the Cholesky factor of K + sigma_n^2 I, is minimised over the log-parameters
+(log l_1..l_D, log sigma_f^2, log sigma_n^2) in a `lax.scan`, so one fit is one compiled program and
+`jax.vmap(fit)` fits several seeds' data sets at once. The default optimiser is L-BFGS (optax) with
+a backtracking (Armijo) line search, on a smooth box parametrisation: each log-parameter is
+lo + (hi - lo) sigmoid(u), u unconstrained. The line search needs only the likelihood (one
+Cholesky) at trial points and the closed-form gradient at accepted ones, so 15 iterations cost
+about a quarter of the 100 Adam steps used before and end at a higher likelihood (measured on the
+paper preset's data, 10 seeds: every seed's NLML on all 2000 pairs lower, by 0.006 nats per pair
+on average; `experiments/bench_hyperfit.py`). Adam (`optimizer="adam"`) remains available.
 
 The prior mean is zero, as in the online GP (`sparse_gp`), which has no mean function: the fitted
 signal variance therefore also absorbs the targets' offset. Centre the targets first if the online
 GP will be given centred targets.
 
-Guards: the log-parameters are clipped to a box around the data scales after every step (so no
-parameter can run to 0 or infinity), a relative jitter is added to the diagonal, and a step whose
-loss or gradient is not finite is rejected (parameters and optimiser state are kept).
+Guards: the log-parameters stay in a box around the data scales (L-BFGS: by the parametrisation;
+Adam: clipped after every step), so no parameter can run to 0 or infinity; a relative jitter is
+added to the diagonal; a trial point whose likelihood is not finite is rejected by the line search
+(Adam: a step whose loss or gradient is not finite is rejected).
 """
 
 from __future__ import annotations
@@ -165,36 +172,99 @@ def parameter_bounds(xs: jax.Array, ys: jax.Array) -> tuple[LogParams, LogParams
     return lower, upper
 
 
+OPTIMIZERS = ("lbfgs", "adam")
+
+
 def fit(
     xs: jax.Array,
     ys: jax.Array,
     *,
-    num_steps: int = 200,
+    num_steps: int = 15,
+    optimizer: str = "lbfgs",
     learning_rate: float = 0.05,
     init: kernels.KernelParams | None = None,
     jitter: float = 1e-8,
 ) -> FitResult:
-    """Minimises the exact negative log marginal likelihood with Adam on log-parameters.
+    """Minimises the exact negative log marginal likelihood over the log-parameters.
 
-    A pure function of its array arguments: wrap it in `jax.jit` (``num_steps`` static) and
-    `jax.vmap` over seeds (leading axis of xs, ys, and of init if given). Use float64 inputs
-    (the Cholesky of an N = 2000 Gram matrix needs it).
+    A pure function of its array arguments: wrap it in `jax.jit` (``num_steps``, ``optimizer``
+    static) and `jax.vmap` over seeds (leading axis of xs, ys, and of init if given). Use float64
+    inputs where possible (the Cholesky of an N = 500-2000 Gram matrix); float32 works with the
+    jitter.
 
     Args:
       xs: (N, D) inputs.
       ys: (N,) targets.
-      num_steps: Adam steps (static).
-      learning_rate: Adam step size (traceable).
+      num_steps: L-BFGS iterations or Adam steps (static).
+      optimizer: ``"lbfgs"`` (default) or ``"adam"`` (static).
+      learning_rate: Adam's step size (traceable; unused by L-BFGS).
       init: starting hyperparameters; default `initial_guess(xs, ys)`.
       jitter: relative diagonal jitter.
 
     Returns:
       `FitResult` with the fitted parameters and the loss curve.
     """
+    if optimizer not in OPTIMIZERS:
+        raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {optimizer!r}")
     lower, upper = parameter_bounds(xs, ys)
     init = initial_guess(xs, ys) if init is None else init
     init = jax.tree.map(lambda a: jnp.asarray(a, xs.dtype), init)
     params0 = jax.tree.map(jnp.clip, to_log(init), lower, upper)
+    if optimizer == "adam":
+        params, losses = _fit_adam(params0, xs, ys, lower, upper, num_steps, learning_rate, jitter)
+    else:
+        params, losses = _fit_lbfgs(params0, xs, ys, lower, upper, num_steps, jitter)
+    final_loss = nlml_log(params, xs, ys, jitter)
+    return FitResult(params=from_log(params), losses=losses, final_loss=final_loss)
+
+
+def _fit_lbfgs(params0, xs, ys, lower, upper, num_steps, jitter):
+    """L-BFGS with a backtracking line search on u, log-params = lo + (hi - lo) sigmoid(u)."""
+    margin = 1e-6  # start strictly inside the box (sigmoid^-1 of 0 or 1 is infinite)
+
+    def to_u(p):
+        def one(v, lo, hi):
+            t = jnp.clip((v - lo) / (hi - lo), margin, 1.0 - margin)
+            return jnp.log(t) - jnp.log1p(-t)
+
+        return jax.tree.map(one, p, lower, upper)
+
+    def from_u(u):
+        return jax.tree.map(lambda v, lo, hi: lo + (hi - lo) * jax.nn.sigmoid(v), u, lower, upper)
+
+    def value_and_grad(u):
+        p, pullback = jax.vjp(from_u, u)
+        loss, grads = nlml_and_grad(p, xs, ys, jitter)
+        return loss, pullback(grads)[0]
+
+    def value(u):
+        loss = nlml_log(from_u(u), xs, ys, jitter)
+        return jnp.where(jnp.isfinite(loss), loss, jnp.inf)  # the line search then backs off
+
+    optimiser = optax.lbfgs(
+        memory_size=10,
+        linesearch=optax.scale_by_backtracking_linesearch(
+            max_backtracking_steps=20, increase_factor=math.inf, max_learning_rate=1.0),
+    )
+
+    def step(carry, _):
+        u, opt_state = carry
+        loss, grads = value_and_grad(u)
+        updates, new_state = optimiser.update(grads, opt_state, u, value=loss, grad=grads,
+                                              value_fn=value)
+        new_u = optax.apply_updates(u, updates)
+        finite = jnp.isfinite(loss) & jnp.all(
+            jnp.stack([jnp.all(jnp.isfinite(g)) for g in jax.tree.leaves(new_u)]))
+        u = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new_u, u)
+        opt_state = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new_state, opt_state)
+        return (u, opt_state), loss
+
+    u0 = to_u(params0)
+    (u, _), losses = jax.lax.scan(step, (u0, optimiser.init(u0)), None, length=num_steps)
+    return from_u(u), losses
+
+
+def _fit_adam(params0, xs, ys, lower, upper, num_steps, learning_rate, jitter):
     optimiser = optax.adam(learning_rate)
 
     def step(carry, _):
@@ -214,5 +284,4 @@ def fit(
     (params, _), losses = jax.lax.scan(
         step, (params0, optimiser.init(params0)), None, length=num_steps
     )
-    final_loss = nlml_log(params, xs, ys, jitter)
-    return FitResult(params=from_log(params), losses=losses, final_loss=final_loss)
+    return params, losses

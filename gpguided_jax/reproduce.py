@@ -35,11 +35,11 @@ from typing import Callable, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.sharding import Mesh
 
 from gpguided_jax import config as config_lib
+from gpguided_jax import distributed, pendulum
 from gpguided_jax import kernels as kernels_lib
-from gpguided_jax import pendulum
 from gpguided_jax import stats as stats_lib
 from gpguided_jax import train as train_lib
 
@@ -58,6 +58,10 @@ FAILURE_CAUSES = ("nonfinite_grad", "gp_guard", "std_at_bound", "below_zero_torq
 
 def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
+
+
+def _silent(msg: str) -> None:
+    del msg
 
 
 # ------------------------------------------------------------------------------------------------
@@ -128,8 +132,9 @@ def pad_seeds(seeds: Sequence[int], num_devices: int) -> list[int]:
 
 
 def _shard(tree, mesh: Mesh):
-    """Places every leaf with its leading (seed) axis split over the mesh."""
-    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec("seeds")))
+    """Places every leaf with its leading (seed) axis split over the mesh (over the devices of
+    every process when there are several; each process places its own rows)."""
+    return distributed.shard(tree, mesh)
 
 
 def _digest(*parts) -> str:
@@ -157,10 +162,11 @@ def fit_priors(cfg: config_lib.TrainConfig, seeds, out_dir, mesh, progress) -> t
                                  saved["prior_mean"])
     t0 = time.perf_counter()
     fit = jax.jit(jax.vmap(train_lib.make_train(cfg).fit_kernel_for_seed))
-    fitted = jax.device_get(fit(_shard(seed_keys(pad_seeds(seeds, mesh.devices.size)), mesh)))
+    fitted = distributed.gather(fit(_shard(seed_keys(pad_seeds(seeds, mesh.devices.size)), mesh)))
     prior = jax.tree_util.tree_map(lambda x: np.asarray(x)[: len(seeds)], fitted)
-    atomic_savez(path, digest=digest, seeds=np.asarray(seeds), prior_mean=prior.mean,
-                 **prior.kernel._asdict())
+    if distributed.is_main():
+        atomic_savez(path, digest=digest, seeds=np.asarray(seeds), prior_mean=prior.mean,
+                     **prior.kernel._asdict())
     progress(f"hyperparameter fit for {len(seeds)} seeds: {time.perf_counter() - t0:.1f}s")
     return prior
 
@@ -170,14 +176,36 @@ def fit_priors(cfg: config_lib.TrainConfig, seeds, out_dir, mesh, progress) -> t
 # ------------------------------------------------------------------------------------------------
 
 
+def checkpoint_path(out_dir: str, method: str) -> str:
+    """This process's checkpoint: checkpoint_<method>.npz, or with several processes
+    checkpoint_<method>.process<I>-of-<N>.npz (each holds its own seeds' state)."""
+    n = distributed.process_count()
+    tag = "" if n == 1 else f".process{jax.process_index()}-of-{n}"
+    return os.path.join(out_dir, f"checkpoint_{method}{tag}.npz")
+
+
 def _save_checkpoint(path, state, records, chunks_done, digest):
-    leaves = jax.tree_util.tree_leaves(jax.device_get(state))
-    arrays = {f"leaf_{i}": np.asarray(x) for i, x in enumerate(leaves)}
+    """This process's rows of the state and all records, atomically; the previous checkpoint is
+    kept as `<path>.prev` so that processes interrupted between their writes can still agree."""
+    arrays = {}
+    for i, leaf in enumerate(jax.tree_util.tree_leaves(state)):
+        rows, arrays[f"leaf_{i}"] = distributed.local_rows(leaf)
     arrays.update({f"rec_{k}": np.asarray(v) for k, v in records.items()})
-    atomic_savez(path, chunks_done=chunks_done, digest=digest, **arrays)
+    buf = io.BytesIO()
+    np.savez(buf, chunks_done=chunks_done, digest=digest, rows=rows, **arrays)
+    tmp = f"{path}.tmp-{os.getpid()}"
+    with open(tmp, "wb") as f:
+        f.write(buf.getvalue())
+        f.flush()
+        os.fsync(f.fileno())
+    if os.path.exists(path):
+        os.replace(path, path + ".prev")
+    os.replace(tmp, path)
 
 
-def _load_checkpoint(path, template, digest, progress):
+def _read_checkpoint(path, template, digest, mesh, progress):
+    """(chunks_done, state, records) from one checkpoint file, or None (missing, stale or corrupt;
+    a corrupt file is set aside)."""
     saved = _read_npz(path, progress)
     if saved is None:
         return None
@@ -185,16 +213,43 @@ def _load_checkpoint(path, template, digest, progress):
         progress(f"ignoring {path}: it was written by a different config or seed list")
         return None
     treedef = jax.tree_util.tree_structure(template)
+    shapes = [t.shape for t in jax.tree_util.tree_leaves(template)]
+    rows = distributed.expected_rows(shapes[0], mesh)
     leaves = [saved.get(f"leaf_{i}") for i in range(treedef.num_leaves)]
     records = {k[4:]: v for k, v in saved.items() if k.startswith("rec_")}
-    shapes_ok = all(
-        leaf is not None and leaf.shape == t.shape
-        for leaf, t in zip(leaves, jax.tree_util.tree_leaves(template))
-    ) and set(records) == set(RECORD_FIELDS) and "chunks_done" in saved
-    if not shapes_ok:
+    ok = (
+        "chunks_done" in saved and "rows" in saved and np.array_equal(saved["rows"], rows)
+        and set(records) == set(RECORD_FIELDS)
+        and all(leaf is not None and leaf.shape == (len(rows),) + shape[1:]
+                for leaf, shape in zip(leaves, shapes))
+    )
+    if not ok:
         _set_aside(path, "missing or mis-shaped arrays", progress)
         return None
-    return jax.tree_util.tree_unflatten(treedef, leaves), records, int(saved["chunks_done"])
+    state = jax.tree_util.tree_unflatten(
+        treedef, [distributed.from_local_rows(shape, rows, leaf, mesh)
+                  for shape, leaf in zip(shapes, leaves)])
+    return int(saved["chunks_done"]), state, records
+
+
+def _load_checkpoint(path, template, digest, mesh, progress):
+    """The newest checkpoint that every process has (its latest or the one before): the processes
+    exchange which chunk counts they hold and all resume from the same one, or all start afresh."""
+    found = {}
+    for candidate in (path, path + ".prev"):
+        got = _read_checkpoint(candidate, template, digest, mesh, progress)
+        if got is not None:
+            found.setdefault(got[0], got)
+    offered = sorted(found, reverse=True)[:2] + [-1, -1]
+    held = distributed.agree(offered[:2])  # (processes, 2)
+    common = set(held[0].tolist())
+    for row in held[1:]:
+        common &= set(row.tolist())
+    common.discard(-1)
+    if not common:
+        return None
+    done, state, records = found[max(common)]
+    return state, records, done
 
 
 def run_method(
@@ -245,14 +300,14 @@ def run_method(
             compiled[n] = jax.jit(jax.vmap(lambda s: train.run_chunk(s, cfg, n)), donate_argnums=0)
         return compiled[n]
 
-    ckpt = os.path.join(out_dir, f"checkpoint_{cfg.method}.npz")
-    digest = _digest(CHECKPOINT_VERSION, cfg.to_json_dict(), padded, chunk_size)
+    ckpt = checkpoint_path(out_dir, cfg.method)
+    digest = _digest(CHECKPOINT_VERSION, cfg.to_json_dict(), padded, chunk_size,
+                     [str(d) for d in mesh.devices.flat])
     args = (keys,) if kernels is None else (keys, _shard(kernels, mesh))
     template = jax.eval_shape(init, *args)
-    loaded = _load_checkpoint(ckpt, template, digest, progress)
+    loaded = _load_checkpoint(ckpt, template, digest, mesh, progress)
     if loaded is not None:
         state, records, done = loaded
-        state = _shard(state, mesh)
         progress(f"[{cfg.method}] resuming from {ckpt}: {done}/{n_chunks} chunks done")
     else:
         t0 = time.perf_counter()
@@ -265,7 +320,7 @@ def run_method(
     while done < n_chunks and (max_chunks is None or chunks_this_call < max_chunks):
         n = min(chunk_size, cfg.num_updates - done * chunk_size)
         state, rec = chunk_fn(n)(state)
-        rec = jax.device_get(rec)
+        rec = distributed.gather(rec)
         records = {k: np.concatenate([records[k], np.asarray(getattr(rec, k))], axis=1)
                    for k in RECORD_FIELDS}
         done += 1
@@ -495,16 +550,23 @@ def reproduce(
 
     Returns a dict with the summary and comparison rows, their markdown tables and the output
     paths; `complete` is False when `max_chunks` stopped a method early (then nothing but
-    checkpoints is written).
+    checkpoints is written). With several processes (`distributed.initialize`) the seeds are
+    sharded over the devices of all of them; each keeps its own checkpoint, and process 0 reports
+    progress and writes config.json, results.npz, the CSV files and the figures.
     """
     seeds = list(map(int, seeds))
+    main = distributed.is_main()
+    if not main:  # one voice: process 0 reports progress and writes the results
+        progress = _silent
     os.makedirs(out_dir, exist_ok=True)
     mesh = make_mesh(num_devices)
     cfgs = {m: config_lib.preset(preset, method=m, dtype=dtype, **(overrides or {})) for m in methods}
-    atomic_write_text(os.path.join(out_dir, "config.json"), json.dumps(
-        {"preset": preset, "seeds": seeds, "chunk_size": chunk_size, "dtype": dtype,
-         "devices": [str(d) for d in mesh.devices.flat],
-         "methods": {m: c.to_json_dict() for m, c in cfgs.items()}}, indent=2))
+    if main:
+        atomic_write_text(os.path.join(out_dir, "config.json"), json.dumps(
+            {"preset": preset, "seeds": seeds, "chunk_size": chunk_size, "dtype": dtype,
+             "processes": distributed.process_count(),
+             "devices": [str(d) for d in mesh.devices.flat],
+             "methods": {m: c.to_json_dict() for m, c in cfgs.items()}}, indent=2))
 
     gp_methods = [m for m in methods if cfgs[m].uses_gp]
     priors = fit_priors(cfgs[gp_methods[0]], seeds, out_dir, mesh, progress) if gp_methods else None
@@ -518,15 +580,17 @@ def reproduce(
             return {"complete": False}
         records[m] = rec
 
-    arrays = {k: np.stack([records[m][k] for m in methods]) for k in RECORD_FIELDS}
-    atomic_savez(os.path.join(out_dir, "results.npz"), methods=np.asarray(methods),
-                 seeds=np.asarray(seeds), **arrays)
     rows = summarise(records, zero_torque_reward(cfgs[methods[0]]))
     comparisons = compare(records)
-    write_csv(rows, os.path.join(out_dir, "summary.csv"))
-    if comparisons:
-        write_csv(comparisons, os.path.join(out_dir, "comparisons.csv"))
-    figs = plot_fig5({"methods": list(methods), **arrays}, out_dir)
-    return {"complete": True, "summary": rows, "comparisons": comparisons, "figures": figs,
-            "markdown": summary_markdown(rows)
-            + ("\n\n" + comparisons_markdown(comparisons) if comparisons else "")}
+    out = {"complete": True, "summary": rows, "comparisons": comparisons, "figures": [],
+           "markdown": summary_markdown(rows)
+           + ("\n\n" + comparisons_markdown(comparisons) if comparisons else "")}
+    if main:
+        arrays = {k: np.stack([records[m][k] for m in methods]) for k in RECORD_FIELDS}
+        atomic_savez(os.path.join(out_dir, "results.npz"), methods=np.asarray(methods),
+                     seeds=np.asarray(seeds), **arrays)
+        write_csv(rows, os.path.join(out_dir, "summary.csv"))
+        if comparisons:
+            write_csv(comparisons, os.path.join(out_dir, "comparisons.csv"))
+        out["figures"] = plot_fig5({"methods": list(methods), **arrays}, out_dir)
+    return out

@@ -6,6 +6,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+import pytest  # noqa: E402
 import scipy.stats  # noqa: E402
 from jax.test_util import check_grads  # noqa: E402
 
@@ -42,7 +43,8 @@ def test_check_grads_and_closed_form_gradient():
         np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-10)
 
 
-def test_fit_recovers_lengthscales_vmapped_over_seeds():
+@pytest.mark.parametrize("optimizer,steps", [("lbfgs", 30), ("adam", 250)])
+def test_fit_recovers_lengthscales_vmapped_over_seeds(optimizer, steps):
     """Data drawn from a known GP (N = 300, D = 2): lengthscales recovered within 25%."""
     n = 300
     true_ls, true_sf2, true_sn2 = np.array([0.6, 2.0]), 1.5, 0.01
@@ -53,28 +55,27 @@ def test_fit_recovers_lengthscales_vmapped_over_seeds():
         [L @ r.normal(size=n) + np.sqrt(true_sn2) * r.normal(size=n)
          for r in (np.random.default_rng(s) for s in (10, 11))]
     )
-    fit = jax.jit(
-        jax.vmap(lambda y: hyperfit.fit(jnp.array(xs), y, num_steps=250, learning_rate=0.05))
-    )
+    fit = jax.jit(jax.vmap(lambda y: hyperfit.fit(
+        jnp.array(xs), y, num_steps=steps, optimizer=optimizer, learning_rate=0.05)))
     res = fit(jnp.array(ys))
     ls = np.asarray(res.params.lengthscales)
     assert np.all(np.abs(ls / true_ls - 1) < 0.25), ls
     sn2 = np.asarray(res.params.noise_variance)
     assert np.all((sn2 > true_sn2 / 2) & (sn2 < true_sn2 * 2)), sn2
     losses = np.asarray(res.losses)
-    assert losses.shape == (2, 250) and np.all(np.isfinite(losses))
+    assert losses.shape == (2, steps) and np.all(np.isfinite(losses))
     assert np.all(np.asarray(res.final_loss) < losses[:, 0] - 10)
 
 
-def test_fit_guards_keep_it_finite():
+@pytest.mark.parametrize("optimizer", ["lbfgs", "adam"])
+def test_fit_guards_keep_it_finite(optimizer):
     # Duplicated inputs, a constant feature and a tiny target scale: bounded and finite.
     rng = np.random.default_rng(3)
     xs = np.concatenate([rng.normal(size=(20, 2)), np.zeros((20, 1))], axis=1)
     xs = np.concatenate([xs, xs])
     ys = 1e-3 * rng.normal(size=40)
-    res = jax.jit(lambda x, y: hyperfit.fit(x, y, num_steps=60, learning_rate=0.5))(
-        jnp.array(xs), jnp.array(ys)
-    )
+    res = jax.jit(lambda x, y: hyperfit.fit(x, y, num_steps=60, learning_rate=0.5,
+                                            optimizer=optimizer))(jnp.array(xs), jnp.array(ys))
     for leaf in jax.tree.leaves(res):
         assert np.all(np.isfinite(np.asarray(leaf)))
     lower, upper = hyperfit.parameter_bounds(jnp.array(xs), jnp.array(ys))
@@ -83,3 +84,19 @@ def test_fit_guards_keep_it_finite():
                          strict=True):
         assert np.all(np.asarray(v) >= np.asarray(lo) - 1e-9)
         assert np.all(np.asarray(v) <= np.asarray(hi) + 1e-9)
+
+
+def test_lbfgs_reaches_a_likelihood_at_least_as_high_as_adam():
+    """15 L-BFGS iterations vs 100 Adam steps (the fit used before) on pendulum-like data with a
+    small noise (sigma_f^2/sigma_n^2 ~ 400): the L-BFGS NLML is not higher."""
+    rng = np.random.default_rng(4)
+    phi, omega, a = rng.uniform(2, 3, 400), rng.normal(0, 0.5, 400), rng.normal(1, 1.5, 400)
+    xs = np.stack([np.sin(phi), np.cos(phi), omega, a], 1)
+    ys = -10 * (phi - np.pi) ** 2 - omega**2 - 0.1 * a + 0.1 * rng.normal(size=400)
+    ys = ys - ys.mean()
+    lb = jax.jit(lambda x, y: hyperfit.fit(x, y, num_steps=15))(jnp.array(xs), jnp.array(ys))
+    ad = jax.jit(lambda x, y: hyperfit.fit(x, y, num_steps=100, optimizer="adam"))(
+        jnp.array(xs), jnp.array(ys))
+    assert float(lb.final_loss) <= float(ad.final_loss) + 1e-6 * abs(float(ad.final_loss))
+    with pytest.raises(ValueError, match="optimizer"):
+        hyperfit.fit(jnp.array(xs), jnp.array(ys), optimizer="newton")

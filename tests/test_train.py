@@ -120,16 +120,16 @@ def test_unknown_preset_and_field():
 
 @pytest.mark.parametrize("method", ["gp_pg", "guided_variance", "guided_direction"])
 def test_gp_methods_improve_on_a_small_problem(method):
-    """The paper preset's task at a reduced size (120 updates, M = 30, a smaller hyperparameter
-    fit; 4 fixed seeds), with the preset's K = 16 Gibbs candidates and gradient clipping.
+    """The paper preset's task at a reduced size (120 updates, M = 30; 4 fixed seeds), with the
+    preset's hyperparameter fit, Gibbs candidates and gradient clipping.
 
     Loose threshold: the mean reward per step over the last 20 updates beats the first 20 by
-    0.01 on average over the seeds (measured: +0.049 to +0.060; the noise-free optimum is ~0.1
-    above the start). With K = 8 candidates (an earlier speed-up of this test) guided_direction
-    did not improve within 120 updates once the gradient was clipped at 300.
+    0.01 on average over the seeds (measured: +0.037 to +0.085; the noise-free optimum is ~0.1
+    above the start). Earlier versions of this test also shrank the hyperparameter fit (500
+    samples) and the candidates (K = 8); with those, guided_variance and guided_direction did not
+    improve on some seeds.
     """
-    cfg = C.preset("paper", method=method, num_updates=120, gp_capacity=30, hyperfit_samples=500,
-                   hyperfit_steps=30, hyperfit_subset=300)
+    cfg = C.preset("paper", method=method, num_updates=120, gp_capacity=30)
     _, rec = jax.jit(jax.vmap(T.make_train(cfg)))(jax.random.split(jax.random.PRNGKey(42), 4))
     r = np.asarray(rec.mean_reward)
     assert r[:, -20:].mean() > r[:, :20].mean() + 0.01, (r[:, :20].mean(1), r[:, -20:].mean(1))

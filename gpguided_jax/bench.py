@@ -1,0 +1,257 @@
+"""`gpguided bench`: the project's benchmarks in one JSON report (medians of several runs).
+
+Sections (each a dict of figures; times in seconds, medians with min and max over `repeats`):
+
+* ``env``: pendulum steps per second, 1 / 10 / 1000 vmapped 2000-step episodes.
+* ``gp``: sparse GP updates per second on a pendulum-like stream (M = 100, 10 seeds vmapped)
+  against the NumPy reference (`gp_reference.OnlineGP`, one seed at a time), and their ratio.
+* ``hyperfit``: the GP hyperparameter fit of the paper preset for the seeds (compile and run).
+* ``train``: per method, compile and run time of all `num_updates` updates for the seeds as one
+  vmapped program, and seed-steps per second.
+* ``numpy_gp_pg``: the per-seed NumPy loop doing gp_pg's work (pendulum RK4, linear policy and its
+  score, the reference GP, the gradient step) over a few updates, extrapolated to the whole run,
+  and the ratio to the JAX gp_pg run.
+* ``paper_run``: wall time of the whole `gpguided reproduce --preset paper` command for the seeds
+  (subprocess; hyperparameter fit, compilation, checkpoints, figures), with an empty persistent
+  compilation cache ("cold") and again with the cache it filled ("warm").
+
+`python -m gpguided_jax.cli bench --out docs/results/bench.json` writes the report that the
+README's benchmark table is generated from (`experiments/readme_tables.py`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gpguided_jax import config as config_lib
+from gpguided_jax import gp_reference, kernels, pendulum, reproduce, sparse_gp
+from gpguided_jax import train as train_lib
+
+
+def _stats(times) -> dict:
+    return {"median": statistics.median(times), "min": min(times), "max": max(times),
+            "runs": len(times)}
+
+
+def _timed(fn, repeats):
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def bench_env(repeats: int, steps: int = 2000, batches=(1, 10, 1000)) -> dict:
+    params = pendulum.make_params()
+
+    def policy(key, s):
+        return -2.0 * jnp.sin(s[0]) - 0.3 * s[1] + 0.5 * jax.random.normal(key, (), s.dtype)
+
+    def one(b):
+        run = jax.jit(lambda keys: pendulum.batch_rollout(keys, params, policy, steps).rewards.sum())
+        keys = jax.random.split(jax.random.key(0), b)
+        jax.block_until_ready(run(keys))
+        t = _stats(_timed(lambda: run(keys), repeats))
+        return {"run_s": t, "steps_per_s": b * steps / t["median"]}
+
+    return {f"episodes_{b}": one(b) for b in batches}
+
+
+def _pendulum_stream(n: int, seed: int):
+    rng = np.random.default_rng(seed)
+    phi = np.pi - 0.5 + np.cumsum(rng.normal(0, 0.01, n))
+    omega = np.cumsum(rng.normal(0, 0.02, n)) % 4 - 2
+    a = np.clip(rng.normal(2, 1.5, n), -6, 6)
+    xs = np.stack([np.sin(phi), np.cos(phi), omega, a], 1)
+    ys = -10 * (phi - np.pi) ** 2 - 10 * omega**2 / 16 - 0.1 * a**2 - 5 + rng.normal(0, 0.1, n)
+    return xs, ys
+
+
+GP_SETTINGS = dict(lengthscales=[0.3, 0.3, 1.0, 3.0], signal_variance=30.0, noise_variance=0.01,
+                   novelty_tol=1e-4, age_penalty=100.0, age_scale=1.0)
+
+
+def bench_gp(repeats: int, seeds: int = 10, n: int = 3000, capacity: int = 100,
+             numpy_points: int = 1500) -> dict:
+    s = GP_SETTINGS
+    hyper = kernels.make_kernel_params(s["lengthscales"], s["signal_variance"], s["noise_variance"])
+    kw = dict(novelty_tol=s["novelty_tol"], age_penalty=s["age_penalty"], age_scale=s["age_scale"])
+    streams = [_pendulum_stream(n, i) for i in range(seeds)]
+    xs = jnp.asarray(np.stack([a for a, _ in streams]))
+    ys = jnp.asarray(np.stack([b for _, b in streams]))
+    ts = jnp.arange(n) // 150
+    run = jax.jit(jax.vmap(lambda x, y: sparse_gp.update_batch(
+        sparse_gp.init(capacity, 4), x, y, hyper, ts, **kw)))
+    t0 = time.perf_counter()
+    jax.block_until_ready(run(xs, ys))
+    compile_s = time.perf_counter() - t0
+    jax_t = _stats(_timed(lambda: run(xs, ys), repeats))
+    x0, y0 = streams[0]
+    np_times = []
+    for _ in range(max(1, repeats // 2)):
+        ref = gp_reference.OnlineGP(capacity, 4, s["lengthscales"], s["signal_variance"],
+                                    s["noise_variance"], **kw)
+        t0 = time.perf_counter()
+        for i in range(numpy_points):
+            ref.update(x0[i], y0[i], int(ts[i]))
+        np_times.append(time.perf_counter() - t0)
+    np_t = _stats(np_times)
+    jax_rate = seeds * n / jax_t["median"]
+    np_rate = numpy_points / np_t["median"]
+    return {"capacity": capacity, "seeds": seeds, "points_per_seed": n, "compile_s": compile_s,
+            "jax_run_s": jax_t, "jax_updates_per_s": jax_rate, "numpy_run_s": np_t,
+            "numpy_points": numpy_points, "numpy_updates_per_s": np_rate,
+            "ratio": jax_rate / np_rate}
+
+
+def _numpy_gp_pg_seconds_per_update(cfg, prior, num_updates, rng) -> float:
+    """Per-seed NumPy Algorithm 1 (gp_pg, linear controller): wall seconds per update."""
+    kernel, m0 = prior.kernel, float(prior.mean)
+    p = cfg.pendulum
+    m, l, g, dt = float(p.mass), float(p.length), float(p.gravity), float(p.dt)
+    b, umax, noise = float(p.friction), float(p.max_torque), float(p.reward_noise_std)
+    gamma, lr = float(cfg.discount), float(cfg.learning_rate)
+    w, log_std = np.zeros(4), float(cfg.init_log_std)
+    gp = gp_reference.OnlineGP(
+        cfg.gp_capacity, 4, np.asarray(kernel.lengthscales), float(kernel.signal_variance),
+        float(kernel.noise_variance), novelty_tol=float(cfg.novelty_tol),
+        age_penalty=float(cfg.age_penalty), age_scale=float(cfg.age_scale), age_fn=cfg.age_fn)
+
+    def f(y, u):
+        return np.array([y[1], (u - b * y[1] - m * g * l * math.sin(y[0])) / (m * l * l)])
+
+    t0 = time.perf_counter()
+    for t in range(num_updates):
+        scores, feats = [], []
+        for _ in range(cfg.episodes_per_update):
+            s = np.asarray(p.start_mean, float) + np.asarray(p.start_std, float) * rng.normal(size=2)
+            s[0] %= 2 * math.pi
+            rewards = []
+            for _ in range(cfg.episode_length):
+                psi = np.array([math.sin(s[0]), math.cos(s[0]), s[1], 1.0])
+                z = math.tanh(w @ psi)
+                c = 5.0 * z
+                sigma = math.exp(log_std)
+                a = c + sigma * rng.normal()
+                dc = 5.0 * (1 - z * z) * psi
+                scores.append(np.append((a - c) / sigma**2 * dc, (a - c) ** 2 / sigma**2 - 1.0))
+                feats.append(np.array([psi[0], psi[1], s[1], a]))
+                u = min(max(a, -umax), umax)
+                k1 = f(s, u)
+                k2 = f(s + 0.5 * dt * k1, u)
+                k3 = f(s + 0.5 * dt * k2, u)
+                k4 = f(s + dt * k3, u)
+                s = s + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+                s[0] %= 2 * math.pi
+                rewards.append(-(s[0] - math.pi) ** 2 - (s[1] / 4) ** 2 + noise * rng.normal())
+            ret, acc = np.zeros(len(rewards)), 0.0
+            for i in reversed(range(len(rewards))):
+                acc = rewards[i] + gamma * acc
+                ret[i] = acc
+            for x, y in zip(feats[-cfg.episode_length:], ret):
+                gp.update(x, y - m0, t)
+        q = m0 + np.array([gp.predict(x)[0] for x in feats])
+        grad = (np.array(scores) * q[:, None]).sum(0) / cfg.episodes_per_update
+        norm = np.linalg.norm(grad)
+        if norm > float(cfg.max_grad_norm):
+            grad = grad * float(cfg.max_grad_norm) / norm
+        w = w + lr * grad[:4]
+        log_std = float(np.clip(log_std + lr * grad[4], math.log(cfg.min_std), math.log(cfg.max_std)))
+    return (time.perf_counter() - t0) / num_updates
+
+
+def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "paper") -> dict:
+    keys = reproduce.seed_keys(range(seeds))
+    out: dict = {"seeds": seeds, "methods": {}}
+    cfg_gp = config_lib.preset(preset, method="gp_pg")
+    fit = jax.jit(jax.vmap(train_lib.make_train(cfg_gp).fit_kernel_for_seed))
+    t0 = time.perf_counter()
+    compiled_fit = fit.lower(keys).compile()
+    fit_compile = time.perf_counter() - t0
+    fit_t = _stats(_timed(lambda: compiled_fit(keys), repeats))
+    priors = compiled_fit(keys)
+    out["hyperfit"] = {"compile_s": fit_compile, "run_s": fit_t}
+    def one(method):
+        cfg = config_lib.preset(preset, method=method)
+        train = train_lib.make_train(cfg)
+        if cfg.uses_gp:
+            state = jax.jit(jax.vmap(lambda k, p: train.init(k, cfg, p)))(keys, priors)
+        else:
+            state = jax.jit(jax.vmap(train.init))(keys)
+        run = jax.jit(jax.vmap(lambda s: train.run_chunk(s, cfg, cfg.num_updates)))
+        t0 = time.perf_counter()
+        compiled = run.lower(state).compile()
+        compile_s = time.perf_counter() - t0
+        t = _stats(_timed(lambda: compiled(state), repeats))
+        steps = seeds * cfg.num_updates * cfg.episodes_per_update * cfg.episode_length
+        return {"compile_s": compile_s, "run_s": t, "seed_steps_per_s": steps / t["median"]}
+
+    for method in config_lib.METHODS:
+        out["methods"][method] = one(method)
+    prior0 = jax.tree_util.tree_map(lambda x: np.asarray(x)[0], priors)
+    per_update = _numpy_gp_pg_seconds_per_update(cfg_gp, prior0, numpy_updates,
+                                                 np.random.default_rng(0))
+    numpy_run = per_update * cfg_gp.num_updates * seeds
+    out["numpy_gp_pg"] = {"measured_updates": numpy_updates, "seconds_per_update_one_seed": per_update,
+                          "extrapolated_run_s": numpy_run,
+                          "ratio_jax_over_numpy": numpy_run / out["methods"]["gp_pg"]["run_s"]["median"]}
+    out["in_process_total_s"] = (fit_compile + fit_t["median"] + sum(
+        m["compile_s"] + m["run_s"]["median"] for m in out["methods"].values()))
+    return out
+
+
+def bench_paper_run(repeats: int, seeds: int, preset: str = "paper") -> dict:
+    """`gpguided reproduce` as a user runs it, cold (empty compilation cache) and warm."""
+    cold, warm = [], []
+    for _ in range(repeats):
+        with tempfile.TemporaryDirectory() as d:
+            cache = os.path.join(d, "cache")
+            for times in (cold, warm):
+                out = os.path.join(d, f"out{len(times)}-{times is warm}")
+                cmd = [sys.executable, "-m", "gpguided_jax.cli", "reproduce", "--preset", preset,
+                       "--seeds", str(seeds), "--out", out, "--compile-cache", cache]
+                t0 = time.perf_counter()
+                proc = subprocess.run(cmd, capture_output=True, text=True)
+                times.append(time.perf_counter() - t0)
+                if proc.returncode != 0:
+                    raise RuntimeError(proc.stderr[-2000:])
+    return {"seeds": seeds, "cold_s": _stats(cold), "warm_s": _stats(warm)}
+
+
+def run(*, repeats: int = 3, seeds: int = 10, numpy_updates: int = 5, quick: bool = False,
+        paper_run: bool = True, progress=lambda m: print(m, file=sys.stderr, flush=True)) -> dict:
+    """All sections; `quick` shrinks every size (for the tests)."""
+    report = {
+        "jax": jax.__version__, "numpy": np.__version__, "python": platform.python_version(),
+        "devices": [str(d) for d in jax.devices()], "cpu_count": os.cpu_count(),
+        "platform": platform.platform(), "dtype": str(jnp.result_type(float)),
+        "date": time.strftime("%Y-%m-%d"), "repeats": repeats, "quick": quick,
+    }
+    progress("bench: environment")
+    report["env"] = bench_env(repeats, steps=200 if quick else 2000,
+                              batches=(1, 10) if quick else (1, 10, 1000))
+    progress("bench: sparse GP")
+    report["gp"] = bench_gp(repeats, seeds=2 if quick else 10, n=300 if quick else 3000,
+                            capacity=20 if quick else 100, numpy_points=100 if quick else 1500)
+    progress("bench: training")
+    preset = "tiny" if quick else "paper"
+    report["train"] = bench_train(repeats, 2 if quick else seeds, 1 if quick else numpy_updates,
+                                  preset)
+    if paper_run:
+        progress("bench: the whole reproduce command, cold and warm")
+        report["paper_run"] = bench_paper_run(repeats if not quick else 1, 2 if quick else seeds,
+                                              preset)
+    report["load_average_after"] = list(os.getloadavg())
+    return report
