@@ -4,10 +4,11 @@
 start-state distribution and episode length as a preset) and returns its learning curve in the
 units of Fig. 5: environment steps against average reward per step of an episode.
 
-`swingup_success` is the success criterion of the swing-up preset: the pendulum stays within
-`tolerance` rad of upright (|phi - pi| < 0.3, phi wrapped to [0, 2 pi)) at every control step of the
-last `hold_time` seconds (1 s) of the episode. An episode that swings through upright, or reaches it
-and falls, fails. `policy_success_rate` applies it to fresh episodes of any policy.
+`swingup_success` (= `swingup.success`) is the success criterion of the swing-up preset: the
+pendulum stays within `tolerance` rad of upright (|phi - pi| < 0.3, phi wrapped to [0, 2 pi)) at
+every control step of the last `hold_time` seconds (1 s) of the episode. An episode that swings
+through upright, or reaches it and falls, fails. `policy_success_rate` (= `swingup.success_rate`)
+applies it to fresh episodes of any policy.
 
 PPO hyperparameters (`PPO_DEFAULTS`) are generic choices for a one-dimensional continuous-control
 task with tens of thousands to a few million steps, fixed before any run and never tuned on the
@@ -42,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpguided_jax import brax_env, pendulum
+from gpguided_jax import brax_env, pendulum, swingup
 
 PPO_DEFAULTS = dict(
     num_envs=16,
@@ -151,60 +152,10 @@ def train_ppo(
     return PPOResult(np.asarray(steps), np.asarray(rewards), wall, make_policy, params)
 
 
-def swingup_success(
-    states: jax.Array, dt: float, *, tolerance: float = 0.3, hold_time: float = 1.0
-) -> jax.Array:
-    """Whether one episode ends in a held swing-up.
-
-    Success: |phi_t - pi| < tolerance at every step t of the last `hold_time` seconds, i.e. of the
-    last round(hold_time / dt) states (phi wrapped to [0, 2 pi), so |phi - pi| is the angular
-    distance to upright).
-
-    Args:
-      states: (T, 2) states [phi, omega] of one episode, T >= hold_time / dt.
-      dt: control interval (s).
-      tolerance: rad.
-      hold_time: s.
-
-    Returns:
-      () bool.
-    """
-    if states.ndim != 2 or states.shape[-1] != 2:
-        raise ValueError(f"states must have shape (T, 2), got {states.shape}")
-    n = int(round(hold_time / float(dt)))
-    if not 1 <= n <= states.shape[0]:
-        raise ValueError(
-            f"an episode of {states.shape[0]} steps is shorter than the hold time ({n} steps of {dt} s)"
-        )
-    phi = pendulum.wrap_angle(states[-n:, 0])
-    return jnp.all(jnp.abs(phi - jnp.pi) < tolerance)
-
-
-def success_flags(
-    key: jax.Array,
-    params: pendulum.PendulumParams,
-    policy_fn: pendulum.PolicyFn,
-    episode_length: int,
-    num_episodes: int,
-    **success_kwargs,
-) -> jax.Array:
-    """(num_episodes,) bool: `swingup_success` of fresh episodes (start states from `params`).
-
-    Args:
-      policy_fn: (key, state) -> torque, as for `pendulum.rollout`.
-    """
-    keys = jax.random.split(key, num_episodes)
-    traj = pendulum.batch_rollout(keys, params, policy_fn, episode_length)
-    dt = float(np.asarray(params.dt))
-    return jax.vmap(lambda s: swingup_success(s, dt, **success_kwargs))(traj.states)
-
-
-def policy_success_rate(key, params, policy_fn, episode_length, num_episodes, **success_kwargs):
-    """Share of `success_flags` (compiled; `params` and `policy_fn` are closed over)."""
-    run = jax.jit(
-        lambda k: success_flags(k, params, policy_fn, episode_length, num_episodes, **success_kwargs)
-    )
-    return float(jnp.mean(run(key)))
+# The success criterion and its rates live in `swingup`; kept here under their old names.
+swingup_success = swingup.success
+success_flags = swingup.success_flags
+policy_success_rate = swingup.success_rate
 
 
 def ppo_policy_fn(result: PPOResult, params: pendulum.PendulumParams, *, deterministic: bool):

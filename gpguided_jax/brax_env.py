@@ -1,9 +1,15 @@
 """The pendulum behind brax's `Env` interface, so brax's own trainers (PPO) run on it.
 
 Observation (sin phi, cos phi, omega); action in [-1, 1] scaled to the torque limit. The physical
-state [phi, omega] lives in `State.pipeline_state`, which is where brax's `AutoResetWrapper` stores
-and restores the first state of an episode. The reward-noise key is carried in `State.info["rng"]`.
+state [phi, omega], followed by the number of consecutive steps spent within the success tolerance
+of upright, lives in `State.pipeline_state`, which is where brax's `AutoResetWrapper` stores and
+restores the first state of an episode. The reward-noise key is carried in `State.info["rng"]`.
 Episodes never terminate by themselves (`done` = 0): brax's `EpisodeWrapper` truncates them.
+
+Metrics (summed over an episode by brax's evaluator): `upright_error` |phi - pi|, and `success`,
+1 on the last step of an episode (`episode_length`, counted by the `EpisodeWrapper`) if the
+pendulum has been within `tolerance` of upright for the last `hold_steps` steps
+(`swingup.success`), so its episode sum is the swing-up success of the episode.
 """
 
 from __future__ import annotations
@@ -31,9 +37,13 @@ class PendulumEnv(Env):
       backend: reported by the `backend` property; the physics is this module's own RK4.
     """
 
-    def __init__(self, params: pendulum.PendulumParams | None = None, backend: str = "jax"):
+    def __init__(self, params: pendulum.PendulumParams | None = None, backend: str = "jax", *,
+                 episode_length: int = 0, hold_steps: int = 200, tolerance: float = 0.3):
         self._params = params if params is not None else pendulum.make_params(dtype=jnp.float32)
         self._backend = backend
+        self._episode_length = int(episode_length)
+        self._hold_steps = int(hold_steps)
+        self._tolerance = float(tolerance)
 
     @property
     def params(self) -> pendulum.PendulumParams:
@@ -44,23 +54,28 @@ class PendulumEnv(Env):
         s = pendulum.reset(key_reset, self._params)
         zero = jnp.zeros((), s.dtype)
         return State(
-            pipeline_state=s,
+            pipeline_state=jnp.concatenate([s, zero[None]]),
             obs=observe(s),
             reward=zero,
             done=zero,
-            metrics={"upright_error": jnp.abs(s[0] - jnp.pi)},
+            metrics={"upright_error": jnp.abs(s[0] - jnp.pi), "success": zero},
             info={"rng": key_next},
         )
 
     def step(self, state: State, action: jax.Array) -> State:
         key_noise, key_next = jax.random.split(state.info["rng"])
         torque = jnp.reshape(action, ()) * self._params.max_torque
-        s, reward = pendulum.step(key_noise, state.pipeline_state, torque, self._params)
+        s, reward = pendulum.step(key_noise, state.pipeline_state[:2], torque, self._params)
         state.info.update(rng=key_next)
+        upright = jnp.abs(pendulum.wrap_angle(s[0]) - jnp.pi) < self._tolerance
+        streak = jnp.where(upright, state.pipeline_state[2] + 1, 0.0).astype(s.dtype)
+        steps_after = state.info.get("steps", jnp.zeros(())) + 1  # EpisodeWrapper's count
+        last = (self._episode_length > 0) & (steps_after == self._episode_length)
+        success = (last & (streak >= self._hold_steps)).astype(s.dtype)
         # Update in place: wrappers (e.g. the evaluator) add their own metric keys to this dict.
-        state.metrics.update(upright_error=jnp.abs(s[0] - jnp.pi))
+        state.metrics.update(upright_error=jnp.abs(s[0] - jnp.pi), success=success)
         return state.replace(
-            pipeline_state=s,
+            pipeline_state=jnp.concatenate([s, streak[None]]),
             obs=observe(s),
             reward=reward.astype(state.reward.dtype),
             done=jnp.zeros_like(state.done),

@@ -401,7 +401,7 @@ def updates_to_90pct(curves: np.ndarray) -> np.ndarray:
 
 
 def summarise(records_by_method: dict[str, dict], zero_torque: float | None = None,
-              reps: int = stats_lib.DEFAULT_REPS) -> list[dict]:
+              reps: int = stats_lib.DEFAULT_REPS, success: bool = False) -> list[dict]:
     """One row per method: initial and final performance (mean reward per step over the first and
     last 10% of updates), the final's mean with its 95% t-interval and its IQM with the 95%
     stratified-bootstrap interval over seeds, the mean updates to 90%, and the failing seeds.
@@ -411,6 +411,10 @@ def summarise(records_by_method: dict[str, dict], zero_torque: float | None = No
         failure counts need the other `UpdateRecord` fields too).
       zero_torque: the zero-torque policy's reward per step (for `below_zero_torque`); None skips
         the failure counts.
+      success: add the swing-up columns (records success_rate and eval_success_rate): the final
+        success rate (last 10% of updates) of the exploring episodes and of the deterministic
+        controller c(s), mean over seeds, and the seeds whose final deterministic success rate is
+        at least 0.9.
     """
     from scipy import stats
 
@@ -434,6 +438,12 @@ def summarise(records_by_method: dict[str, dict], zero_torque: float | None = No
             iqm_ci95_high=hi,
             updates_to_90pct=float(np.mean(updates_to_90pct(curves))),
         )
+        if success:
+            explore = final_performance(np.asarray(rec["success_rate"], float))
+            greedy = final_performance(np.asarray(rec["eval_success_rate"], float))
+            row["final_success_rate"] = float(explore.mean())
+            row["final_eval_success_rate"] = float(greedy.mean())
+            row["seeds_eval_success_90"] = int(np.sum(greedy >= 0.9))
         if zero_torque is not None:
             fails = failing_seeds(rec, zero_torque)
             row["failing_seeds"] = int(fails["any"].sum())
@@ -467,17 +477,27 @@ def write_csv(rows: list[dict], path: str) -> None:
 
 
 def summary_markdown(rows: list[dict]) -> str:
-    lines = ["| method | initial | final (mean) | 95% CI | final (IQM) | 95% CI (bootstrap) | "
-             "updates to 90% | failing seeds |", "|---|---|---|---|---|---|---|---|"]
+    succ = bool(rows) and "final_success_rate" in rows[0]
+    head = ("| method | initial | final (mean) | 95% CI | final (IQM) | 95% CI (bootstrap) | "
+            "updates to 90% | failing seeds |")
+    rule = "|---|---|---|---|---|---|---|---|"
+    if succ:
+        head += " success (exploring) | success (c(s)) | seeds >= 90% |"
+        rule += "---|---|---|"
+    lines = [head, rule]
     for r in rows:
         fails = r.get("failing_seeds", "")
         if fails != "":
             causes = ", ".join(f"{c} {r['fail_' + c]}" for c in FAILURE_CAUSES if r["fail_" + c])
             fails = f"{fails}/{r['seeds']}" + (f" ({causes})" if causes else "")
-        lines.append(f"| {r['method']} | {r['initial_mean']:.3f} | {r['final_mean']:.3f} | "
-                     f"[{r['ci95_low']:.3f}, {r['ci95_high']:.3f}] | {r['final_iqm']:.3f} | "
-                     f"[{r['iqm_ci95_low']:.3f}, {r['iqm_ci95_high']:.3f}] | "
-                     f"{r['updates_to_90pct']:.0f} | {fails} |")
+        line = (f"| {r['method']} | {r['initial_mean']:.3f} | {r['final_mean']:.3f} | "
+                f"[{r['ci95_low']:.3f}, {r['ci95_high']:.3f}] | {r['final_iqm']:.3f} | "
+                f"[{r['iqm_ci95_low']:.3f}, {r['iqm_ci95_high']:.3f}] | "
+                f"{r['updates_to_90pct']:.0f} | {fails} |")
+        if succ:
+            line += (f" {r['final_success_rate']:.2f} | {r['final_eval_success_rate']:.2f} | "
+                     f"{r['seeds_eval_success_90']}/{r['seeds']} |")
+        lines.append(line)
     return "\n".join(lines)
 
 
@@ -580,7 +600,9 @@ def reproduce(
             return {"complete": False}
         records[m] = rec
 
-    rows = summarise(records, zero_torque_reward(cfgs[methods[0]]))
+    c0 = cfgs[methods[0]]
+    swingup_task = c0.episode_length * float(np.asarray(c0.pendulum.dt)) >= c0.success_hold_time
+    rows = summarise(records, zero_torque_reward(c0), success=swingup_task)
     comparisons = compare(records)
     out = {"complete": True, "summary": rows, "comparisons": comparisons, "figures": [],
            "markdown": summary_markdown(rows)

@@ -27,10 +27,11 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 
 from gpguided_jax import controllers as controllers_lib
-from gpguided_jax import estimators, hyperfit, kernels, pendulum, policies, sparse_gp
+from gpguided_jax import estimators, hyperfit, kernels, pendulum, policies, sparse_gp, swingup
 from gpguided_jax.config import TrainConfig, validate
 
 _POLICY_OF_METHOD = {
@@ -90,6 +91,11 @@ class UpdateRecord(NamedTuple):
         (`sparse_gp.check`) and was therefore not taken in (the GP kept its state).
       gp_mean_error_ratio: the health check's worst |mu(x_t) - Ret_t| over its bound, max over
         the update's episodes (the guard fires above 1; how close a run came to it).
+      success_rate: share of the update's (exploring) episodes that end in a held swing-up
+        (`swingup.success`; 0 when episodes are shorter than the hold time).
+      eval_success_rate: the same for `eval_episodes` fresh episodes of the deterministic
+        controller c(s) (0 when eval_episodes = 0).
+      eval_reward: their mean reward per step (0 when eval_episodes = 0).
     """
 
     mean_reward: jax.Array
@@ -102,10 +108,14 @@ class UpdateRecord(NamedTuple):
     fresh_bv_share: jax.Array
     gp_guard: jax.Array
     gp_mean_error_ratio: jax.Array
+    success_rate: jax.Array
+    eval_success_rate: jax.Array
+    eval_reward: jax.Array
 
 
 class Episode(NamedTuple):
-    states: jax.Array  # (H, 2)
+    states: jax.Array  # (H, 2), the state each action was taken in
+    next_states: jax.Array  # (H, 2), the state it led to
     actions: jax.Array  # (H,)
     rewards: jax.Array  # (H,)
     scores: policies.PolicyParams  # leaves (H, ...)
@@ -188,11 +198,43 @@ def rollout(prog: Program, key, theta, ctx, policy, cfg: TrainConfig) -> Episode
         score = policy.grad_log_prob(theta, s, a, ctx, aux)
         std = policy.exploration_std(theta, s, ctx, aux)
         s_next, r = pendulum.step(key_reward, s, a, cfg.pendulum)
-        return s_next, (s, a, r, score, std)
+        return s_next, (s, s_next, a, r, score, std)
 
     keys = jax.random.split(key_steps, prog.config.episode_length)
-    _, (s, a, r, scores, std) = jax.lax.scan(body, s0, keys)
-    return Episode(s, a, r, scores, std)
+    _, (s, s_next, a, r, scores, std) = jax.lax.scan(body, s0, keys)
+    return Episode(s, s_next, a, r, scores, std)
+
+
+def episode_success(prog: Program, next_states, cfg: TrainConfig) -> jax.Array:
+    """`swingup.success` of one episode's visited states (False if it is shorter than the hold
+    time)."""
+    # the hold time in steps is static: it uses the control interval of make_train's config
+    n = swingup.hold_steps(float(np.asarray(prog.config.pendulum.dt)), prog.config.success_hold_time)
+    if n > next_states.shape[0]:
+        return jnp.zeros((), bool)
+    phi = pendulum.wrap_angle(next_states[-n:, 0])
+    return jnp.all(jnp.abs(phi - jnp.pi) < cfg.success_tolerance)
+
+
+def evaluate(prog: Program, key, theta, cfg: TrainConfig):
+    """`eval_episodes` fresh episodes of the deterministic controller c(s; theta_c):
+    (success rate, mean reward per step); zeros when eval_episodes = 0."""
+    n = prog.config.eval_episodes
+    if n == 0:
+        zero = jnp.zeros((), prog.dtype)
+        return zero, zero
+
+    def policy_fn(k, s):
+        del k
+        return prog.controller.apply(theta.controller, s)
+
+    traj = pendulum.batch_rollout(jax.random.split(key, n), cfg.pendulum, policy_fn,
+                                  prog.config.episode_length)
+    # batch_rollout's states are the states the actions were taken in; the last visited state is
+    # final_state: the visited states are states[1:] followed by final_state.
+    visited = jnp.concatenate([traj.states[:, 1:], traj.final_state[:, None]], axis=1)
+    ok = jax.vmap(lambda v: episode_success(prog, v, cfg))(visited)
+    return jnp.mean(ok.astype(prog.dtype)), jnp.mean(traj.rewards)
 
 
 def take_in_episode(gp, kernel, xs, returns, update_index, cfg: TrainConfig):
@@ -258,6 +300,7 @@ def one_update(prog: Program, cfg: TrainConfig, state: TrainState):
     """key -> roll-outs and GP updates (steps 1-2) -> gradient (3) -> optimiser (4) -> record."""
     static = prog.config
     key, key_eps = jax.random.split(state.key)
+    key_eval = jax.random.fold_in(key_eps, 1)  # a side stream: the episodes' keys stay as they were
     t = state.update_index
 
     def episode(gp, key_e):
@@ -278,6 +321,8 @@ def one_update(prog: Program, cfg: TrainConfig, state: TrainState):
 
     n_bv = sparse_gp.num_basis_vectors(gp)
     fresh = jnp.sum(gp.mask & (gp.timestamps == t))
+    successes = jax.vmap(lambda v: episode_success(prog, v, cfg))(eps.next_states)
+    eval_success, eval_reward = evaluate(prog, key_eval, state.theta, cfg)
     record = UpdateRecord(
         mean_reward=jnp.mean(eps.rewards),
         exploration_std=jnp.mean(eps.exploration_std),
@@ -289,6 +334,9 @@ def one_update(prog: Program, cfg: TrainConfig, state: TrainState):
         fresh_bv_share=jnp.where(n_bv > 0, fresh / jnp.maximum(n_bv, 1), 0.0).astype(prog.dtype),
         gp_guard=jnp.sum(fired),
         gp_mean_error_ratio=jnp.max(error_ratio),
+        success_rate=jnp.mean(successes.astype(prog.dtype)),
+        eval_success_rate=eval_success,
+        eval_reward=eval_reward,
     )
     return TrainState(theta, opt_state, gp, state.kernel, key, t + 1), record
 

@@ -1,0 +1,159 @@
+"""Seed scaling of the paper run on this machine: 10, 30, 100 and 300 seeds.
+
+For each number of seeds S (in its own process, so that its peak memory can be read), float64:
+the hyperparameter fit of S seeds (compile and run), then for every method all 400 updates in
+chunks of 50 (compile, then the 8 chunks timed). Reported per S: seeds x updates per second per
+method, the whole run's wall time (fit + compile + run of every method, without the checkpoint and
+figure writing of `gpguided reproduce`), the process's peak resident memory, and XLA's memory
+analysis of the largest chunk program (arguments + outputs + temporaries, the memory a device
+needs). The per-seed slope of the latter gives the largest batch that fits in one 80 GB
+accelerator (an estimate: no GPU was available here; a GPU's own buffers and XLA's GPU kernels
+differ from the CPU's).
+
+Above --full-up-to seeds (30) only the first --partial-updates (100) updates of each method are
+timed and the run time is extrapolated to 400 (`updates_timed` in the JSON says which).
+
+Writes scaling.json and scaling.png to --out and prints the JSON.
+
+Usage:
+  python experiments/seed_scaling.py --seeds 10 30 100 300 --out docs/results/scaling
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+CHUNK = 50
+
+
+def measure(num_seeds: int, measured_updates: int | None = None) -> dict:
+    import jax
+    import numpy as np
+
+    import gpguided_jax
+    from gpguided_jax import config as config_lib
+    from gpguided_jax import reproduce
+    from gpguided_jax import train as train_lib
+
+    gpguided_jax.enable_x64()
+    keys = reproduce.seed_keys(range(2000, 2000 + num_seeds))  # not a result: throughput only
+    out = {"seeds": num_seeds, "methods": {}}
+    cfg_gp = config_lib.preset("paper", method="gp_pg")
+    fit = jax.jit(jax.vmap(train_lib.make_train(cfg_gp).fit_kernel_for_seed))
+    t0 = time.perf_counter()
+    compiled_fit = fit.lower(keys).compile()
+    out["hyperfit_compile_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    priors = jax.block_until_ready(compiled_fit(keys))
+    out["hyperfit_run_s"] = time.perf_counter() - t0
+    device_bytes = []
+    for method in config_lib.METHODS:
+        cfg = config_lib.preset("paper", method=method)
+        train = train_lib.make_train(cfg)
+        if cfg.uses_gp:
+            state = jax.jit(jax.vmap(lambda k, p, t=train, c=cfg: t.init(k, c, p)))(keys, priors)
+        else:
+            state = jax.jit(jax.vmap(train.init))(keys)
+        run = jax.jit(jax.vmap(lambda s, t=train, c=cfg: t.run_chunk(s, c, CHUNK)))
+        t0 = time.perf_counter()
+        compiled = run.lower(state).compile()
+        compile_s = time.perf_counter() - t0
+        mem = compiled.memory_analysis()
+        nbytes = (mem.argument_size_in_bytes + mem.output_size_in_bytes
+                  + mem.temp_size_in_bytes) if mem is not None else float("nan")
+        device_bytes.append(nbytes)
+        jax.block_until_ready(state)
+        t0 = time.perf_counter()
+        finite = True
+        done = min(cfg.num_updates, measured_updates or cfg.num_updates)
+        for _ in range(done // CHUNK):
+            state, rec = compiled(state)
+            finite &= bool(np.all(np.isfinite(np.asarray(rec.mean_reward))))
+        # a partial run is extrapolated to all updates (a GP update's cost does not grow once the
+        # basis is full, which it is within the first chunk)
+        run_s = (time.perf_counter() - t0) * cfg.num_updates / (done // CHUNK * CHUNK)
+        out["methods"][method] = {"compile_s": compile_s, "run_s": run_s,
+                                  "seed_updates_per_s": num_seeds * cfg.num_updates / run_s,
+                                  "whole_run_s": compile_s + run_s, "device_bytes": nbytes,
+                                  "finite": finite, "updates_timed": done // CHUNK * CHUNK}
+    out["whole_paper_run_s"] = (out["hyperfit_compile_s"] + out["hyperfit_run_s"]
+                                + sum(m["whole_run_s"] for m in out["methods"].values()))
+    out["device_bytes_max"] = max(device_bytes)
+    out["peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    return out
+
+
+def plot(results: list[dict], path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    seeds = [r["seeds"] for r in results]
+    fig, (a, b, c) = plt.subplots(1, 3, figsize=(13, 3.8))
+    a.plot(seeds, [r["whole_paper_run_s"] for r in results], "o-", color="k", label="all methods")
+    for m in results[0]["methods"]:
+        a.plot(seeds, [r["methods"][m]["whole_run_s"] for r in results], ".--", label=m)
+        b.plot(seeds, [r["methods"][m]["seed_updates_per_s"] for r in results], "o-", label=m)
+    a.set(xscale="log", yscale="log", xlabel="seeds", ylabel="wall time of the paper run [s]")
+    b.set(xscale="log", yscale="log", xlabel="seeds", ylabel="seeds x updates per second")
+    c.plot(seeds, [r["peak_rss_bytes"] / 2**30 for r in results], "o-", label="process peak RSS")
+    c.plot(seeds, [r["device_bytes_max"] / 2**30 for r in results], "s-",
+           label="XLA memory analysis (largest program)")
+    c.set(xscale="log", yscale="log", xlabel="seeds", ylabel="memory [GiB]")
+    for ax in (a, b, c):
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
+    fig.suptitle("Paper preset, float64, 2-core CPU: every method's 400 updates")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[10, 30, 100, 300])
+    ap.add_argument("--out", default="results/scaling")
+    ap.add_argument("--full-up-to", type=int, default=30,
+                    help="seed counts above this time only --partial-updates updates and extrapolate "
+                         "to 400 (default 30)")
+    ap.add_argument("--partial-updates", type=int, default=100)
+    ap.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--updates", type=int, default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.one is not None:  # the child process
+        print(json.dumps(measure(args.one, args.updates)))
+        return 0
+    results = []
+    for n in args.seeds:
+        extra = ["--updates", str(args.partial_updates)] if n > args.full_up_to else []
+        proc = subprocess.run([sys.executable, __file__, "--one", str(n), *extra],
+                              capture_output=True, text=True, cwd=ROOT)
+        if proc.returncode != 0:
+            raise SystemExit(proc.stderr[-3000:])
+        results.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+        print(f"{n} seeds: {results[-1]['whole_paper_run_s']:.1f} s", file=sys.stderr, flush=True)
+    # per-seed device memory: slope between the two largest batches
+    big, small = results[-1], results[-2] if len(results) > 1 else results[-1]
+    per_seed = ((big["device_bytes_max"] - small["device_bytes_max"])
+                / max(big["seeds"] - small["seeds"], 1)) if big is not small else \
+        big["device_bytes_max"] / big["seeds"]
+    report = {"results": results, "device_bytes_per_seed": per_seed,
+              "seeds_in_80_GB": int(80e9 // per_seed) if per_seed > 0 else None}
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, "scaling.json"), "w") as f:
+        json.dump(report, f, indent=2)
+    plot(results, os.path.join(args.out, "scaling.png"))
+    print(json.dumps(report, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,72 @@
+"""The swing-up preset is feasible before any learning: the energy-pumping controller swings up
+from >= 95% of 100 start states of the preset's distribution, the RBF policy class fitted to it
+does too, and the success criterion means what it says."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gpguided_jax import config as config_lib
+from gpguided_jax import pendulum, swingup
+from gpguided_jax import train as train_lib
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return config_lib.preset("swingup", dtype="float32")
+
+
+def _rate(cfg, policy_fn, seed=123, n=100):
+    return swingup.success_rate(
+        jax.random.PRNGKey(seed), cfg.pendulum, policy_fn, cfg.episode_length, n,
+        tolerance=float(cfg.success_tolerance), hold_time=cfg.success_hold_time)
+
+
+def test_preset_keeps_the_paper_physics_and_cannot_lift_directly(cfg):
+    p = cfg.pendulum
+    assert float(p.dt) == pytest.approx(0.005)  # 200 Hz
+    assert float(p.max_torque) == pytest.approx(5.0)
+    # a direct lift needs the torque to beat gravity at the horizontal
+    assert float(p.max_torque) < float(p.mass * p.gravity * p.length)
+    assert np.allclose(np.asarray(p.start_mean), 0.0)  # hanging down
+
+
+def test_constant_torque_never_succeeds(cfg):
+    assert _rate(cfg, lambda k, s: jnp.asarray(5.0, s.dtype), n=20) == 0.0
+
+
+def test_energy_pumping_controller_swings_up_from_95_percent_of_starts(cfg):
+    rate = _rate(cfg, swingup.energy_pumping_policy(cfg.pendulum))
+    assert rate >= 0.95, rate
+
+
+def test_fitted_rbf_controller_swings_up_as_often(cfg):
+    controller = train_lib.make_controller(cfg)
+    theta, mse = swingup.fit_controller(
+        controller, cfg.pendulum, swingup.energy_pumping_policy(cfg.pendulum),
+        jax.random.PRNGKey(7), episode_length=cfg.episode_length, num_episodes=100)
+    assert np.isfinite(mse)
+
+    def deterministic(key, s):
+        del key
+        return controller.apply(theta, s)
+
+    rate = _rate(cfg, deterministic, seed=321)
+    assert rate >= 0.95, (rate, mse)
+
+
+def test_success_criterion():
+    dt = 0.005
+    up = jnp.tile(jnp.array([jnp.pi, 0.0]), (300, 1))
+    assert bool(swingup.success(up, dt, tolerance=0.3, hold_time=1.0))
+    # a single step outside the tolerance inside the last second breaks the hold
+    broken = up.at[-50, 0].set(jnp.pi + 0.31)
+    assert not bool(swingup.success(broken, dt, tolerance=0.3, hold_time=1.0))
+    # ...but not before it
+    early = up.at[50, 0].set(0.0)
+    assert bool(swingup.success(early, dt, tolerance=0.3, hold_time=1.0))
+    # upright is upright after any number of turns (phi is wrapped)
+    assert bool(swingup.success(up + jnp.array([4 * jnp.pi, 0.0]), dt, tolerance=0.3, hold_time=1.0))
+    with pytest.raises(ValueError, match="shorter than the hold time"):
+        swingup.success(up[:100], dt, tolerance=0.3, hold_time=1.0)
