@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gpguided_jax import config as config_lib
-from gpguided_jax import pendulum, swingup
+from gpguided_jax import swingup
 from gpguided_jax import train as train_lib
 
 
