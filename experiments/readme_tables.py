@@ -105,11 +105,102 @@ def consistency_table() -> str:
     return "\n".join(lines)
 
 
+def bench_table() -> str:
+    with open(os.path.join(RESULTS, "bench.json")) as f:
+        b = json.load(f)
+    t, pr = b["train"], b["paper_run"]
+    lines = ["| figure | median [min, max] of 3 runs | target |", "|---|---|---|"]
+
+    def cell(x, unit="s", digits=1):
+        return f"{x['median']:.{digits}f} {unit} [{x['min']:.{digits}f}, {x['max']:.{digits}f}]"
+
+    lines.append(f"| whole `gpguided reproduce --preset paper`, {pr['seeds']} seeds, empty compile "
+                 f"cache | {cell(pr['cold_s'])} | < 30 s |")
+    lines.append(f"| the same, persistent compile cache warm | {cell(pr['warm_s'])} | |")
+    h = t["hyperfit"]
+    lines.append(f"| hyperparameter fit, {t['seeds']} seeds (run; compile {h['compile_s']:.1f} s) | "
+                 f"{cell(h['run_s'], digits=2)} | ≤ 3 s |")
+    for m, r in t["methods"].items():
+        lines.append(f"| {m}: {t['seeds']} seeds x all updates (run; compile {r['compile_s']:.1f} s) "
+                     f"| {cell(r['run_s'], digits=2)} | |")
+    n = t["numpy_gp_pg"]
+    lines.append(f"| gp_pg: per-seed NumPy loop, extrapolated from {n['measured_updates']} updates | "
+                 f"{n['extrapolated_run_s']:.1f} s | |")
+    lines.append(f"| **gp_pg: JAX over NumPy** | **{n['ratio_jax_over_numpy']:.1f}x** | ≥ 20x |")
+    g = b["gp"]
+    lines.append(f"| sparse GP update alone (M = {g['capacity']}, {g['seeds']} seeds vmapped): "
+                 f"JAX / NumPy updates per second | {g['jax_updates_per_s']:,.0f} / "
+                 f"{g['numpy_updates_per_s']:,.0f} = {g['ratio']:.1f}x | |")
+    e = b["env"]
+    lines.append("| pendulum steps per second, 1 / 10 / 1000 vmapped episodes | "
+                 + " / ".join(f"{e[k]['steps_per_s'] / 1e6:.2f} M" for k in
+                              ("episodes_1", "episodes_10", "episodes_1000")) + " | |")
+    lines.append("")
+    lines.append(f"{b['cpu_count']} CPU cores, jax {b['jax']}, {b['dtype']}, {b['date']}. "
+                 + _source("bench.json"))
+    return "\n".join(lines)
+
+
+def scaling_table() -> str:
+    with open(os.path.join(RESULTS, "scaling", "scaling.json")) as f:
+        sc = json.load(f)
+    methods = list(sc["results"][0]["methods"])
+    lines = ["| seeds | whole paper run [s] | " + " | ".join(f"{m} seeds·updates/s" for m in methods)
+             + " | peak RSS [GiB] | XLA memory, largest program [MiB] | updates timed |",
+             "|---|---|" + "---|" * len(methods) + "---|---|---|"]
+    for r in sc["results"]:
+        timed = min(m.get("updates_timed", 400) for m in r["methods"].values())
+        lines.append(f"| {r['seeds']} | {r['whole_paper_run_s']:.0f} | "
+                     + " | ".join(f"{r['methods'][m]['seed_updates_per_s']:.0f}" for m in methods)
+                     + f" | {r['peak_rss_bytes'] / 2**30:.2f} | {r['device_bytes_max'] / 2**20:.0f} | "
+                     + ("all 400" if timed >= 400 else f"{timed} (extrapolated)") + " |")
+    lines.append("")
+    lines.append(f"Device memory per seed (slope of XLA's memory analysis): "
+                 f"{sc['device_bytes_per_seed'] / 2**20:.2f} MiB, so about "
+                 f"{sc['seeds_in_80_GB']:,} seeds fit in 80 GB (an estimate; no GPU was measured). "
+                 + _source("scaling/scaling.json"))
+    return "\n".join(lines)
+
+
+def profile_table() -> str:
+    with open(os.path.join(RESULTS, "profile.json")) as f:
+        pr = json.load(f)
+    lines = ["| method | one update [ms] | roll-out, fixed noise | roll-out, own policy | GP update "
+             "| Q_GP prediction | GP update achieved |", "|---|---|---|---|---|---|---|"]
+    for m, r in pr["methods"].items():
+        full = r["full_update_s"]
+
+        def share(k):
+            return f"{100 * r[k] / full:.0f}%" if k in r else "–"
+
+        gf = (f"{r['gp_update_achieved_gflops_per_s']:.1f} GFLOP/s"
+              if "gp_update_achieved_gflops_per_s" in r else "–")
+        lines.append(f"| {m} | {r['per_update_ms']:.1f} | {share('rollout_fixed_noise_s')} | "
+                     f"{share('rollout_policy_s')} | {share('gp_update_s')} | "
+                     f"{share('prediction_s')} | {gf} |")
+    h = pr["host"]
+    lines.append("")
+    lines.append(f"Shares of one update, each part timed alone ({pr['seeds']} seeds, {pr['dtype']}); "
+                 f"host work between chunks (records to host, checkpoint): "
+                 f"{h['host_s_per_chunk']:.2f} s per chunk of {pr['updates']} updates. "
+                 + _source("profile.json"))
+    return "\n".join(lines)
+
+
+def swingup_table() -> str:
+    with open(os.path.join(RESULTS, "swingup", "heldout.md")) as f:
+        return f.read().rstrip("\n") + "\n\n" + _source("swingup/heldout.md")
+
+
 TABLES = {
     "fig5": fig5_table,
     "improvement": improvement_table,
     "failures": failures_table,
     "consistency": consistency_table,
+    "bench": bench_table,
+    "profile": profile_table,
+    "scaling": scaling_table,
+    "swingup": swingup_table,
 }
 BLOCK = re.compile(r"(<!-- generated: (\w+) -->\n)(.*?)(<!-- end: \2 -->)", re.S)
 

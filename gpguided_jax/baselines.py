@@ -63,15 +63,34 @@ PPO_DEFAULTS = dict(
 HIDDEN_LAYERS = (64, 64)
 
 
+SAC_DEFAULTS = dict(
+    num_envs=16,
+    learning_rate=3e-4,
+    discounting=0.99,
+    batch_size=256,
+    reward_scaling=1.0,
+    tau=0.005,
+    min_replay_size=2000,
+    max_replay_size=200_000,
+    grad_updates_per_step=1,
+    normalize_observations=False,
+    num_eval_envs=64,
+    deterministic_eval=False,
+)
+SAC_HIDDEN_LAYERS = (64, 64)
+
+
 class PPOResult(NamedTuple):
-    """What `train_ppo` returns.
+    """What `train_ppo` and `train_sac` return.
 
     Attributes:
       env_steps: (E,) environment steps at each evaluation (0 for the initial policy).
       reward_per_step: (E,) average reward per step of an evaluation episode (mean over episodes).
-      wall_time: seconds for the whole `ppo.train` call, compilation and evaluations included.
+      wall_time: seconds for the whole `train` call, compilation and evaluations included.
       make_policy: brax's `make_policy(params, deterministic=False) -> policy(obs, key)`.
-      params: (normaliser, policy, value) parameters of the final policy.
+      params: (normaliser, policy, ...) parameters of the final policy.
+      success_rate: (E,) share of the evaluation episodes that end in a held swing-up (the
+        environment's `success` metric; 0 if the episodes are shorter than the hold time).
     """
 
     env_steps: np.ndarray
@@ -79,6 +98,10 @@ class PPOResult(NamedTuple):
     wall_time: float
     make_policy: Callable
     params: tuple
+    success_rate: np.ndarray | None = None
+
+
+SACResult = PPOResult
 
 
 def float32_params(params: pendulum.PendulumParams) -> pendulum.PendulumParams:
@@ -128,28 +151,64 @@ def train_ppo(
         policy_hidden_layer_sizes=tuple(hidden_layers),
         value_hidden_layer_sizes=tuple(hidden_layers),
     )
-    steps, rewards = [], []
+    return _run_brax(ppo.train, pendulum_params, num_timesteps, episode_length, seed,
+                     num_evals=num_evals, network_factory=network_factory, **kwargs)
+
+
+def train_sac(
+    pendulum_params: pendulum.PendulumParams,
+    num_timesteps: int,
+    episode_length: int,
+    seed: int,
+    *,
+    num_evals: int = 11,
+    hidden_layers: tuple = SAC_HIDDEN_LAYERS,
+    **sac_kwargs,
+) -> PPOResult:
+    """brax SAC (`brax.training.agents.sac.train`) on `PendulumEnv(pendulum_params)`, as
+    `train_ppo`. SAC tunes its entropy temperature itself (target entropy -action_size); the reward
+    scale sets how much the reward weighs against that entropy. Hyperparameters: `SAC_DEFAULTS`."""
+    from brax.training.agents.sac import networks as sac_networks
+    from brax.training.agents.sac import train as sac
+
+    if num_evals < 2:
+        raise ValueError(f"num_evals must be >= 2, got {num_evals}")
+    kwargs = {**SAC_DEFAULTS, **sac_kwargs}
+    network_factory = functools.partial(sac_networks.make_sac_networks,
+                                        hidden_layer_sizes=tuple(hidden_layers))
+    return _run_brax(sac.train, pendulum_params, num_timesteps, episode_length, seed,
+                     num_evals=num_evals, network_factory=network_factory, **kwargs)
+
+
+def _run_brax(train_fn, pendulum_params, num_timesteps, episode_length, seed, *, num_evals,
+              hold_time: float = 1.0, tolerance: float = 0.3, **kwargs) -> PPOResult:
+    """One brax trainer on the pendulum (float32, x64 off), with its evaluations recorded."""
+    steps, rewards, success = [], [], []
 
     def progress(step, metrics):
         steps.append(int(step))
         rewards.append(float(metrics["eval/episode_reward"]) / episode_length)
+        success.append(float(metrics.get("eval/episode_success", np.nan)))
 
     with jax.enable_x64(False):
-        env = brax_env.PendulumEnv(float32_params(pendulum_params))
+        p32 = float32_params(pendulum_params)
+        env = brax_env.PendulumEnv(
+            p32, episode_length=int(episode_length),
+            hold_steps=swingup.hold_steps(float(np.asarray(p32.dt)), hold_time), tolerance=tolerance)
         t0 = time.perf_counter()
-        make_policy, params, _ = ppo.train(
+        make_policy, params, _ = train_fn(
             environment=env,
             num_timesteps=int(num_timesteps),
             episode_length=int(episode_length),
             num_evals=int(num_evals),
             seed=int(seed),
-            network_factory=network_factory,
             progress_fn=progress,
             **kwargs,
         )
         jax.block_until_ready(params)
         wall = time.perf_counter() - t0
-    return PPOResult(np.asarray(steps), np.asarray(rewards), wall, make_policy, params)
+    return PPOResult(np.asarray(steps), np.asarray(rewards), wall, make_policy, params,
+                     np.asarray(success))
 
 
 # The success criterion and its rates live in `swingup`; kept here under their old names.
@@ -221,6 +280,9 @@ def ci95(x: np.ndarray, axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 __all__ = [
     "PPO_DEFAULTS",
+    "SAC_DEFAULTS",
+    "SACResult",
+    "train_sac",
     "PPOResult",
     "ci95",
     "float32_params",

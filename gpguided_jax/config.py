@@ -45,6 +45,7 @@ STATIC_FIELDS = (
     "dtype",
     "eval_episodes",
     "success_hold_time",
+    "gp_stride",
 )
 
 
@@ -75,6 +76,9 @@ class TrainConfig:
         Every array of a run has this dtype: GP, policy, physics, hyperparameter fit.
       eval_episodes: per update, this many fresh episodes of the deterministic controller c(s)
         (no exploration) are run for the records `eval_success_rate` and `eval_reward`; 0: none.
+      gp_stride: the GP takes in every gp_stride-th (x_t, Ret_t) of an episode (1, the paper: all);
+        the gradient still uses every step (Q_GP is predicted at all of them). For long episodes
+        at 200 Hz, whose neighbouring steps carry almost the same information.
       success_hold_time: seconds the pendulum must stay upright at the end of an episode for a
         swing-up success (`swingup.success`); episodes shorter than that never succeed.
 
@@ -119,6 +123,7 @@ class TrainConfig:
     use_baseline: bool = False
     dtype: str = "float64"
     eval_episodes: int = 0
+    gp_stride: int = 1
     success_hold_time: float = 1.0
     # traced
     learning_rate: Any = 2e-4
@@ -199,7 +204,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     if cfg.dtype not in DTYPES:
         _fail("dtype", f"unknown dtype {cfg.dtype!r}; choose from {DTYPES}")
     for f in ("num_updates", "episodes_per_update", "episode_length", "gp_capacity",
-              "hyperfit_samples", "hyperfit_steps", "hyperfit_subset", "num_candidates"):
+              "hyperfit_samples", "hyperfit_steps", "hyperfit_subset", "num_candidates", "gp_stride"):
         v = getattr(cfg, f)
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
             _fail(f, f"must be a positive integer, got {v!r}")
@@ -285,11 +290,12 @@ PRESETS: dict[str, dict] = {
     # learning rate, noise level, lambda and beta are set by the tuning of issue 11
     # (docs/tuning_swingup.md).
     "swingup": dict(
-        num_updates=200,
+        num_updates=100,  # 270,000 environment steps
         episodes_per_update=3,
         episode_length=900,
         controller="rbf",
         gp_capacity=100,
+        gp_stride=5,  # the GP takes in every 5th step (40 Hz): 540 points per update
         # returns of 900-step episodes are far larger than the paper preset's; Adam is scale-free
         optimizer="adam",
         learning_rate=0.01,
@@ -312,7 +318,13 @@ PRESETS: dict[str, dict] = {
 # Per preset, per method: settings chosen by tuning one method at a time (applied after the
 # preset's own fields and before the caller's overrides).
 METHOD_PRESETS: dict[str, dict[str, dict]] = {
-    "swingup": {},
+    # experiments/swingup_study.py tune (seeds 100-101; docs/tuning_swingup.md)
+    "swingup": {
+        "reinforce": {"learning_rate": 1.0},
+        "gp_pg": {"learning_rate": 0.3},
+        "guided_variance": {"learning_rate": 0.1},
+        "guided_direction": {"learning_rate": 0.1},
+    },
 }
 
 

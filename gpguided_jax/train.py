@@ -309,8 +309,9 @@ def one_update(prog: Program, cfg: TrainConfig, state: TrainState):
         returns = estimators.discounted_returns(ep.rewards, cfg.discount)
         fired, error_ratio = jnp.zeros((), jnp.int32), jnp.zeros((), prog.dtype)
         if static.uses_gp:
-            gp, fired, health = take_in_episode(gp, state.kernel, _features(ep.states, ep.actions),
-                                                returns, t, cfg)
+            k = static.gp_stride  # every k-th step of the episode joins the GP (1: all)
+            gp, fired, health = take_in_episode(
+                gp, state.kernel, _features(ep.states, ep.actions)[::k], returns[::k], t, cfg)
             error_ratio = health.mean_error_ratio
         return gp, (ep, returns, fired, error_ratio)
 

@@ -109,6 +109,18 @@ def test_train_ppo_tiny_budget_returns_finite_curve():
     assert jax.config.jax_enable_x64  # train_ppo leaves the package's float64 setting as it was
 
 
+def test_train_sac_tiny_budget_returns_finite_curve_and_success():
+    params = pendulum.make_params(start_mean=(0.0, 0.0), start_std=(0.1, 0.1))
+    result = baselines.train_sac(params, 400, 250, seed=0, num_evals=2, num_envs=4,
+                                 batch_size=16, min_replay_size=64, max_replay_size=1000,
+                                 num_eval_envs=4, hidden_layers=(8,))
+    assert result.env_steps[0] == 0 and result.env_steps[-1] >= 400
+    assert np.all(np.isfinite(result.reward_per_step))
+    # hanging down, 1.25 s episodes: nothing is upright for the last second
+    np.testing.assert_array_equal(result.success_rate, np.zeros(2))
+    assert jax.config.jax_enable_x64
+
+
 def test_compare_ppo_end_to_end(tmp_path):
     path = pathlib.Path(__file__).parent.parent / "experiments" / "compare_ppo.py"
     spec = importlib.util.spec_from_file_location("compare_ppo", path)

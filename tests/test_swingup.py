@@ -70,3 +70,21 @@ def test_success_criterion():
     assert bool(swingup.success(up + jnp.array([4 * jnp.pi, 0.0]), dt, tolerance=0.3, hold_time=1.0))
     with pytest.raises(ValueError, match="shorter than the hold time"):
         swingup.success(up[:100], dt, tolerance=0.3, hold_time=1.0)
+
+
+def test_swingup_preset_uses_the_tuned_settings():
+    """config.METHOD_PRESETS['swingup'] is what the tuning record chose (tuning seeds only)."""
+    import json
+    import os
+
+    path = os.path.join(os.path.dirname(os.path.dirname(__file__)), "docs", "results", "swingup",
+                        "tuning.json")
+    with open(path) as f:
+        tuning = json.load(f)
+    for method in config_lib.METHODS:
+        chosen = tuning["methods"][method]["chosen"]
+        assert config_lib.METHOD_PRESETS["swingup"][method] == pytest.approx(chosen), method
+        cfg = config_lib.preset("swingup", method=method, dtype="float32")
+        for field, value in chosen.items():
+            assert float(getattr(cfg, field)) == pytest.approx(value, rel=1e-6), (method, field)
+    assert not set(tuning["seeds"]) & set(range(1000, 1010))  # never the reported seeds

@@ -104,6 +104,9 @@ def test_sweep_over_traced_field_is_one_program():
         ("controller", "mlp"),
         ("age_fn", "linear"),
         ("optimizer", "lbfgs"),
+        ("gp_stride", 0),
+        ("eval_episodes", -1),
+        ("success_hold_time", 0.0),
     ],
 )
 def test_bad_config_is_refused_naming_the_field(field, value):
@@ -251,3 +254,41 @@ def test_gp_guard_rejects_a_diverged_gp_and_counts_it():
     assert int(fired2) == 1 and float(health.mean_error_ratio) > 1
     for a, b in zip(jax.tree_util.tree_leaves(gp2), jax.tree_util.tree_leaves(bad)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_gp_stride_takes_every_kth_point_into_the_gp():
+    """With gp_stride = k the GP's update equals `take_in_episode` on points 0, k, 2k, ... of each
+    episode; gp_stride = 1 is the default and unchanged."""
+    cfg = C.preset("tiny", method="gp_pg", gp_stride=3, novelty_tol=0.0)
+    prog = T.make_program(cfg)
+    train = T.make_train(cfg)
+    state = train.init(jax.random.PRNGKey(3), cfg)
+    new_state, _ = T.one_update(prog, cfg, state)
+    # the same episodes, replayed by hand
+    _, key_eps = jax.random.split(state.key)
+    gp = state.gp
+    for key_e in jax.random.split(key_eps, cfg.episodes_per_update):
+        ctx = T.policy_context(cfg, gp, state.kernel)
+        ep = T.rollout(prog, key_e, state.theta, ctx, prog.policy, cfg)
+        ret = T.estimators.discounted_returns(ep.rewards, cfg.discount)
+        feats = T._features(ep.states, ep.actions)
+        gp, _, _ = T.take_in_episode(gp, state.kernel, feats[::3], ret[::3], state.update_index, cfg)
+    np.testing.assert_array_equal(np.asarray(new_state.gp.mask), np.asarray(gp.mask))
+    np.testing.assert_allclose(np.asarray(new_state.gp.alpha), np.asarray(gp.alpha), rtol=1e-10,
+                               atol=1e-12)
+    # fewer points than the whole episodes: the strided GP holds at most ceil(H / 3) per episode
+    n = int(T.sparse_gp.num_basis_vectors(new_state.gp))
+    assert 1 <= n <= cfg.episodes_per_update * -(-cfg.episode_length // 3)
+
+
+def test_summary_success_columns():
+    recs = {"mean_reward": np.zeros((3, 10)),
+            "success_rate": np.array([[0.0] * 9 + [1.0], [0.0] * 10, [1.0] * 10]),
+            "eval_success_rate": np.array([[0.0] * 9 + [1.0], [0.0] * 10, [0.5] * 10])}
+    row = R.summarise({"m": recs}, success=True)[0]
+    assert row["final_success_rate"] == pytest.approx((1.0 + 0.0 + 1.0) / 3)
+    assert row["final_eval_success_rate"] == pytest.approx((1.0 + 0.0 + 0.5) / 3)
+    assert row["seeds_eval_success_90"] == 1
+    assert "final_success_rate" not in R.summarise({"m": recs})[0]
+    md = R.summary_markdown([row])
+    assert "success (c(s))" in md and "1/3" in md

@@ -1,0 +1,392 @@
+"""The swing-up question: does GP-guided exploration make policy search learn faster? The four
+methods against brax PPO and SAC on the swing-up preset, tuned with equal budgets on tuning seeds,
+then compared on held-out seeds.
+
+Stages (each writes under --out, default docs/results/swingup):
+
+``tune``  Tuning seeds (100, 101 by default; never reported). Every method and baseline gets the
+          same budget: `CONFIGS_PER_METHOD` (8) configurations x the tuning seeds, each a full run
+          (the preset's env-step budget). The search is coordinate-wise: a first stage of four values
+          of the learning rate, then stages of two values of the next parameter, each stage keeping
+          the best configuration so far (`GRIDS`, `BASELINE_GRIDS`). Our methods' stages are one
+          `sweep.run_sweep` each (all values x seeds as one vmapped program). A configuration's
+          score is the final success rate of the deterministic controller (mean over the last 10%
+          of updates or the last evaluation, mean over seeds), ties broken by the final reward per
+          step. Writes tuning.json (every configuration tried, its score, the choice) and
+          docs/tuning_swingup.md.
+``heldout`` Held-out seeds (1000-1009): the four methods with `gpguided reproduce --preset swingup`
+          (which applies the tuned settings in `config.METHOD_PRESETS`), PPO and SAC per seed with
+          their tuned settings from tuning.json and the same environment-step budget. Writes
+          heldout.npz (curves), heldout.json (per-seed steps to 50% / 90% success, wall times).
+``report`` The plot (success rate and reward per step of the deterministic policy against
+          environment steps, mean and 95% t-band over seeds) and the steps-to-success table
+          (heldout.md), from heldout.npz/json.
+
+Curves. Our methods: after every update, `eval_episodes` (4) fresh episodes of the deterministic
+controller c(s) (records eval_success_rate, eval_reward), at the environment steps consumed so far
+(the GP methods' include the episodes collected for the hyperparameter fit); success is smoothed
+by a trailing mean over 5 updates (20 episodes). PPO and SAC: brax's evaluator with the
+deterministic policy (mean action) on 64 fresh episodes, `NUM_EVALS` times per run. Steps to X%
+success: the first curve point at or above X (per seed); a seed that never gets there counts as not
+reached, and the table gives the median over seeds with its bootstrap interval (infinite where
+more than half the seeds never reach it) and the number of seeds that reached it.
+
+Usage:
+  python experiments/swingup_study.py tune
+  python experiments/swingup_study.py heldout
+  python experiments/swingup_study.py report
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import os
+import sys
+import time
+
+import matplotlib
+
+matplotlib.use("Agg")
+import jax  # noqa: E402
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+import gpguided_jax  # noqa: E402
+from gpguided_jax import baselines, reproduce, sweep  # noqa: E402
+from gpguided_jax import config as config_lib  # noqa: E402
+
+METHODS = config_lib.METHODS
+BASELINES = ("ppo", "sac")
+CONFIGS_PER_METHOD = 8
+TUNING_SEEDS = (100, 101)
+HELDOUT_SEEDS = tuple(range(1000, 1010))
+NUM_EVALS = 21
+SMOOTH = 5
+LN = math.log
+# (parameter, values) stages of the coordinate search: 4 + 2 + 2 = 8 configurations per method
+# (guided_direction: 2 + 2 + 2 + 2, as it has one more parameter, beta).
+GRIDS = {
+    "reinforce": [("learning_rate", [0.03, 0.1, 0.3, 1.0]), ("init_log_std", [LN(0.5), LN(3.0)]),
+                  ("learning_rate", [0.01, 3.0])],
+    "gp_pg": [("learning_rate", [0.03, 0.1, 0.3, 1.0]), ("init_log_std", [LN(0.5), LN(3.0)]),
+              ("age_penalty", [10.0, 1000.0])],
+    "guided_variance": [("learning_rate", [0.03, 0.1, 0.3, 1.0]),
+                        ("guided_variance_scale", [1.0, 9.0]), ("age_penalty", [10.0, 1000.0])],
+    "guided_direction": [("learning_rate", [0.1, 0.3]), ("candidate_scale", [1.0, 9.0]),
+                         ("age_penalty", [10.0, 1000.0]), ("inverse_temperature", [1.0, 100.0])],
+}
+BASELINE_GRIDS = {
+    "ppo": [("learning_rate", [1e-4, 3e-4, 1e-3, 3e-3]), ("entropy_cost", [1e-4, 1e-2]),
+            ("unroll_length", [10, 50])],
+    "sac": [("learning_rate", [1e-4, 3e-4, 1e-3, 3e-3]), ("reward_scaling", [0.3, 3.0]),
+            ("batch_size", [64, 512])],
+}
+BASELINE_FIXED = {"ppo": dict(deterministic_eval=True), "sac": dict(deterministic_eval=True)}
+
+
+def log(msg: str) -> None:
+    print(f"[{time.strftime('%X')}] {msg}", file=sys.stderr, flush=True)
+
+
+def base_config(method: str, **overrides) -> config_lib.TrainConfig:
+    return config_lib.preset("swingup", method=method, **overrides)
+
+
+def env_steps_per_update(cfg) -> int:
+    return cfg.episodes_per_update * cfg.episode_length
+
+
+def budget(cfg) -> int:
+    """Environment steps of one run of our methods (without the hyperfit episodes)."""
+    return cfg.num_updates * env_steps_per_update(cfg)
+
+
+def method_env_steps(cfg) -> np.ndarray:
+    """(num_updates,) environment steps consumed by the end of each update (hyperfit included)."""
+    pre = cfg.hyperfit_episodes * cfg.episode_length if cfg.uses_gp else 0
+    return pre + env_steps_per_update(cfg) * np.arange(1, cfg.num_updates + 1)
+
+
+def score_method(records: dict) -> tuple[float, float]:
+    """(final deterministic success rate, final eval reward per step), means over seeds."""
+    succ = reproduce.final_performance(np.asarray(records["eval_success_rate"], float))
+    rew = reproduce.final_performance(np.asarray(records["eval_reward"], float))
+    return float(succ.mean()), float(rew.mean())
+
+
+def score_baseline(results: list) -> tuple[float, float]:
+    return (float(np.mean([r.success_rate[-1] for r in results])),
+            float(np.mean([r.reward_per_step[-1] for r in results])))
+
+
+def _best(tried: list[dict]) -> dict:
+    return max(tried, key=lambda t: (round(t["success"], 3), t["reward"]))
+
+
+# ------------------------------------------------------------------------------------------ tune
+
+
+@contextlib.contextmanager
+def untuned():
+    """The swing-up preset without the tuned per-method settings (so that tuning starts from the
+    preset's own defaults, whatever the last tuning chose)."""
+    saved = config_lib.METHOD_PRESETS.get("swingup", {})
+    config_lib.METHOD_PRESETS["swingup"] = {}
+    try:
+        yield
+    finally:
+        config_lib.METHOD_PRESETS["swingup"] = saved
+
+
+def tune_method(method: str, seeds, dtype: str) -> dict:
+    chosen: dict = {}
+    tried: list[dict] = []
+    for param, values in GRIDS[method]:
+        t0 = time.perf_counter()
+        res = sweep.run_sweep(param, values, method=method, preset="swingup", seeds=seeds,
+                              overrides={**{k: v for k, v in chosen.items() if k != param}, "dtype": dtype},
+                              progress=lambda m: None)
+        for i, v in enumerate(values):
+            rec = {k: res.records[k][i] for k in ("eval_success_rate", "eval_reward")}
+            succ, rew = score_method(rec)
+            bad = int(np.sum(np.any(res.records["nonfinite_grad"][i] > 0, axis=-1))
+                      + np.sum(np.any(res.records["gp_guard"][i] > 0, axis=-1)))
+            tried.append(dict(settings={**chosen, param: float(v)}, success=succ, reward=rew,
+                              unhealthy_seeds=bad))
+            log(f"[tune {method}] {param}={v:.4g} (with {chosen}): success {succ:.2f}, "
+                f"reward {rew:.3f}")
+        log(f"[tune {method}] stage {param}: {time.perf_counter() - t0:.0f}s")
+        chosen = dict(_best(tried)["settings"])
+    return dict(tried=tried, chosen=chosen)
+
+
+def run_baseline(name: str, cfg, seed: int, settings: dict):
+    fn = baselines.train_ppo if name == "ppo" else baselines.train_sac
+    return fn(cfg.pendulum, budget(cfg), cfg.episode_length, seed, num_evals=NUM_EVALS,
+              **{**BASELINE_FIXED[name], **settings})
+
+
+def tune_baseline(name: str, seeds) -> dict:
+    cfg = base_config("reinforce", dtype="float32")
+    chosen: dict = {}
+    tried: list[dict] = []
+    for param, values in BASELINE_GRIDS[name]:
+        for v in values:
+            settings = {**chosen, param: v}
+            t0 = time.perf_counter()
+            results = [run_baseline(name, cfg, s, settings) for s in seeds]
+            succ, rew = score_baseline(results)
+            tried.append(dict(settings=settings, success=succ, reward=rew,
+                              wall_s=float(sum(r.wall_time for r in results))))
+            log(f"[tune {name}] {settings}: success {succ:.2f}, reward {rew:.3f} "
+                f"({time.perf_counter() - t0:.0f}s)")
+        chosen = dict(_best(tried)["settings"])
+    return dict(tried=tried, chosen=chosen)
+
+
+def tuning_markdown(report: dict) -> str:
+    lines = [
+        "# Tuning record: swing-up preset (issue 11)",
+        "",
+        "Generated by `python experiments/swingup_study.py tune` "
+        f"(tuning seeds {report['seeds']}, never reported; {report['dtype']}). Every method and "
+        f"baseline had the same budget: {CONFIGS_PER_METHOD} configurations x "
+        f"{len(report['seeds'])} seeds, each a full run of {report['env_steps']:,} environment "
+        "steps. Coordinate search: each stage tries the listed values of one parameter with the "
+        "best settings so far and keeps the best configuration seen; the score is the final "
+        "success rate of the deterministic policy, ties broken by its final reward per step "
+        "(swing-up: about -2.9 for the energy-pumping controller, -6.6 for constant full torque, "
+        "-9.2 for zero torque).",
+        "",
+    ]
+    for name, r in report["methods"].items():
+        lines += [f"## {name}", "", "| settings | success | reward per step |", "|---|---|---|"]
+        for t in r["tried"]:
+            s = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                          for k, v in t["settings"].items())
+            lines.append(f"| {s} | {t['success']:.2f} | {t['reward']:.3f} |")
+        c = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                      for k, v in r["chosen"].items())
+        lines += ["", f"Chosen: {c}.", ""]
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------- heldout
+
+
+def heldout(out: str, seeds, tuning: dict, dtype: str) -> None:
+    run_dir = os.path.join(out, "methods")
+    t0 = time.perf_counter()
+    stamps = []
+
+    def progress(msg):
+        stamps.append((time.perf_counter(), msg))
+        log(msg)
+
+    res = reproduce.reproduce("swingup", seeds, METHODS, run_dir, dtype=dtype, chunk_size=20,
+                              progress=progress)
+    if not res["complete"]:
+        raise RuntimeError("reproduce did not finish")
+    walls = {m: 0.0 for m in METHODS}
+    fit_s, prev = 0.0, t0
+    for t, msg in stamps:
+        if msg.startswith("hyperparameter fit"):
+            fit_s += t - prev
+        elif msg.startswith("["):
+            walls[msg[1:msg.index("]")]] += t - prev
+        prev = t
+    with np.load(os.path.join(run_dir, "results.npz")) as f:
+        rec = {k: f[k] for k in f.files}
+    curves, meta = {}, {"seeds": list(seeds), "wall_s": {}, "hyperfit_s": fit_s}
+    for i, m in enumerate(METHODS):
+        cfg = base_config(m, dtype=dtype)
+        curves[f"{m}_steps"] = method_env_steps(cfg)
+        curves[f"{m}_success"] = rec["eval_success_rate"][i]
+        curves[f"{m}_reward"] = rec["eval_reward"][i]
+        meta["wall_s"][m] = walls[m] + (fit_s if cfg.uses_gp else 0.0)
+    cfg = base_config("reinforce", dtype=dtype)
+    for name in BASELINES:
+        settings = tuning["methods"][name]["chosen"]
+        rs = []
+        for s in seeds:
+            r = run_baseline(name, cfg, s, settings)
+            log(f"[{name}] seed {s}: {r.env_steps[-1]} steps, {r.wall_time:.0f}s, success "
+                f"{r.success_rate[-1]:.2f}, reward {r.reward_per_step[-1]:.3f}")
+            rs.append(r)
+        curves[f"{name}_steps"] = rs[0].env_steps
+        curves[f"{name}_success"] = np.stack([r.success_rate for r in rs])
+        curves[f"{name}_reward"] = np.stack([r.reward_per_step for r in rs])
+        meta["wall_s"][name] = float(sum(r.wall_time for r in rs))
+    reproduce.atomic_savez(os.path.join(out, "heldout.npz"), **curves)
+    reproduce.atomic_write_text(os.path.join(out, "heldout.json"), json.dumps(meta, indent=2))
+
+
+# ---------------------------------------------------------------------------------------- report
+
+
+def smoothed(success: np.ndarray, name: str) -> np.ndarray:
+    """Our methods' per-update success (4 episodes) as a trailing mean over SMOOTH updates."""
+    if name in BASELINES:
+        return success
+    k = SMOOTH
+    c = np.cumsum(np.pad(success, ((0, 0), (1, 0))), axis=1)
+    n = np.minimum(np.arange(1, success.shape[1] + 1), k)
+    return (c[:, 1:] - c[:, np.maximum(np.arange(1, success.shape[1] + 1) - k, 0)]) / n
+
+
+def steps_to(steps: np.ndarray, success: np.ndarray, level: float) -> np.ndarray:
+    """Per seed: the first environment step at which success >= level (inf if never)."""
+    hit = success >= level - 1e-9
+    return np.where(hit.any(1), steps[hit.argmax(1)], np.inf)
+
+
+def median_ci(x: np.ndarray, reps: int = 10_000, seed: int = 0) -> tuple[float, float, float]:
+    """Median and percentile-bootstrap 95% interval (inf entries = never reached)."""
+    rng = np.random.default_rng(seed)
+    boots = np.median(rng.choice(x, size=(reps, len(x)), replace=True), axis=1)
+    q = lambda p: float(np.quantile(boots, p, method="nearest"))  # noqa: E731 (no inf - inf)
+    return float(np.median(x)), q(0.025), q(0.975)
+
+
+def report(out: str) -> str:
+    with np.load(os.path.join(out, "heldout.npz")) as f:
+        curves = {k: f[k] for k in f.files}
+    with open(os.path.join(out, "heldout.json")) as f:
+        meta = json.load(f)
+    names = [*METHODS, *BASELINES]
+    rows, table = [], {}
+    for n in names:
+        steps, succ = curves[f"{n}_steps"], smoothed(curves[f"{n}_success"], n)
+        row = dict(method=n, seeds=int(succ.shape[0]))
+        for level in (0.5, 0.9):
+            per_seed = steps_to(steps, succ, level)
+            med, lo, hi = median_ci(per_seed)
+            key = f"steps_to_{int(level * 100)}"
+            row[key] = per_seed.tolist()
+            row[key + "_median"], row[key + "_low"], row[key + "_high"] = med, lo, hi
+            row[key + "_reached"] = int(np.isfinite(per_seed).sum())
+        row["final_success"] = float(succ[:, -1].mean())
+        row["final_reward"] = float(curves[f"{n}_reward"][:, -1].mean())
+        row["wall_s"] = meta["wall_s"][n]
+        rows.append(row)
+        table[n] = row
+    reproduce.atomic_write_text(os.path.join(out, "heldout_table.json"), json.dumps(rows, indent=2))
+
+    def fmt(r, key):
+        if r[key + "_reached"] == 0:
+            return f"not reached (0/{r['seeds']})"
+        m, lo, hi = (r[key + s] for s in ("_median", "_low", "_high"))
+        f = lambda v: "∞" if not np.isfinite(v) else f"{v / 1000:.0f}k"  # noqa: E731
+        return f"{f(m)} [{f(lo)}, {f(hi)}] ({r[key + '_reached']}/{r['seeds']})"
+
+    md = ["| method | steps to 50% success | steps to 90% success | final success | "
+          "final reward/step | wall time [s] |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        md.append(f"| {r['method']} | {fmt(r, 'steps_to_50')} | {fmt(r, 'steps_to_90')} | "
+                  f"{r['final_success']:.2f} | {r['final_reward']:.3f} | {r['wall_s']:.0f} |")
+    text = "\n".join(md)
+    reproduce.atomic_write_text(os.path.join(out, "heldout.md"), text + "\n")
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.2))
+    for i, n in enumerate(names):
+        steps = curves[f"{n}_steps"]
+        for ax, y in ((a, smoothed(curves[f"{n}_success"], n)), (b, curves[f"{n}_reward"])):
+            mean, half = baselines.ci95(y)
+            ax.plot(steps, mean, color=f"C{i}", label=n, lw=1.5)
+            ax.fill_between(steps, mean - half, mean + half, color=f"C{i}", alpha=0.15)
+    a.set(xlabel="environment steps", ylabel="swing-up success (deterministic policy)",
+          ylim=(-0.03, 1.03))
+    b.set(xlabel="environment steps", ylabel="reward per step (deterministic policy)")
+    b.axhline(-2.86, color="k", ls=":", lw=1, label="energy pumping")
+    b.axhline(-6.57, color="gray", ls="--", lw=1, label="constant +5 N m")
+    for ax in (a, b):
+        ax.grid(alpha=0.3)
+    b.legend(fontsize=7, loc="lower right")
+    fig.suptitle(f"Swing-up preset, held-out seeds {meta['seeds'][0]}-{meta['seeds'][-1]}: "
+                 "mean and 95% t-band")
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "swingup_comparison.png"), dpi=120)
+    plt.close(fig)
+    return text
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("stage", choices=("tune", "heldout", "report"))
+    ap.add_argument("--out", default="docs/results/swingup")
+    ap.add_argument("--dtype", default="float32", choices=config_lib.DTYPES)
+    ap.add_argument("--only", nargs="+", default=None, help="tune only these methods/baselines")
+    args = ap.parse_args(argv)
+    if args.dtype == "float64":
+        gpguided_jax.enable_x64()
+    os.makedirs(args.out, exist_ok=True)
+    path = os.path.join(args.out, "tuning.json")
+    if args.stage == "tune":
+        rep = {"seeds": list(TUNING_SEEDS), "dtype": args.dtype, "methods": {}}
+        if os.path.exists(path):
+            with open(path) as f:
+                rep = json.load(f)
+        rep["env_steps"] = budget(base_config("reinforce", dtype=args.dtype))
+        for name in args.only or [*METHODS, *BASELINES]:
+            t0 = time.perf_counter()
+            with untuned():
+                rep["methods"][name] = (tune_baseline(name, TUNING_SEEDS) if name in BASELINES
+                                        else tune_method(name, TUNING_SEEDS, args.dtype))
+            rep["methods"][name]["wall_s"] = time.perf_counter() - t0
+            reproduce.atomic_write_text(path, json.dumps(rep, indent=2))
+        reproduce.atomic_write_text(os.path.join("docs", "tuning_swingup.md"), tuning_markdown(rep))
+    elif args.stage == "heldout":
+        with open(path) as f:
+            heldout(args.out, HELDOUT_SEEDS, json.load(f), args.dtype)
+        print(report(args.out))
+    else:
+        print(report(args.out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
