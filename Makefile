@@ -13,7 +13,7 @@ SEEDS ?= 100
 SEED_START ?= 1000
 CONSISTENCY_SEEDS := $(shell seq $(SEED_START) $$(($(SEED_START) + 9)))
 
-.PHONY: run results demo test lint bench clean-venv
+.PHONY: run results figures swingup demo test lint bench clean-venv
 
 $(STAMP): pyproject.toml requirements.lock
 	python3 -m venv $(VENV)
@@ -33,6 +33,26 @@ results: $(STAMP)
 	$(PY) experiments/consistency.py --seeds $(CONSISTENCY_SEEDS) --f64 docs/results/paper_float64 --f32 docs/results/paper_float32 --out docs/results/consistency
 	$(PY) experiments/readme_tables.py --write
 
+# Fig. 2/4, coverage and the two exploratory sweeps shown in the README (docs/figures/).
+FIGTMP := results/figures-tmp
+figures: $(STAMP)
+	$(PY) experiments/fig2_fig4_coverage.py --preset paper --seeds 5 --seed-start 1000 --out $(FIGTMP)/fig24
+	cp $(FIGTMP)/fig24/fig2_variance.png $(FIGTMP)/fig24/fig4_value.png $(FIGTMP)/fig24/coverage.png $(FIGTMP)/fig24/coverage.json docs/figures/
+	$(VENV)/bin/gpguided sweep --param lambda --values 0 10 100 400 1000 --method gp_pg --preset paper --seeds 10 --seed-start 1000 --out $(FIGTMP)/lambda
+	cp $(FIGTMP)/lambda/sweep.csv docs/figures/sweep_age_penalty.csv
+	cp $(FIGTMP)/lambda/sweep_age_penalty.png docs/figures/
+	$(VENV)/bin/gpguided sweep --param beta --values 1 3 10 30 100 --method guided_direction --preset paper --seeds 10 --seed-start 1000 --out $(FIGTMP)/beta
+	cp $(FIGTMP)/beta/sweep.csv docs/figures/sweep_inverse_temperature.csv
+	cp $(FIGTMP)/beta/sweep_inverse_temperature.png docs/figures/
+	$(PY) experiments/fig1_bv_composition.py --out docs/figures
+
+# The swing-up study (issue 11): tuning on seeds 100-101, then seeds 1000-1009 against PPO and SAC.
+swingup: $(STAMP)
+	$(PY) experiments/swingup_study.py tune
+	$(PY) experiments/swingup_study.py heldout
+	$(PY) experiments/swingup_study.py gpfig
+	$(PY) experiments/readme_tables.py --write
+
 demo: $(STAMP)
 	$(VENV)/bin/gpguided demo --out $(OUT)/demo
 
@@ -43,7 +63,8 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check gpguided_jax experiments tests
 
 bench: $(STAMP)
-	$(PY) experiments/bench_env.py
+	$(VENV)/bin/gpguided bench --out docs/results/bench.json
+	$(PY) experiments/readme_tables.py --write
 
 clean-venv:
 	rm -rf $(VENV)

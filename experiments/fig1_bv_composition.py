@@ -123,7 +123,8 @@ def main(argv=None):
     fit_x, fit_y = jax.jit(collect, static_argnums=(3, 4))(
         k_fit, theta0[0], params, 12, 50, sigma, discount
     )
-    fit = jax.jit(hyperfit.fit, static_argnames="num_steps")(fit_x, fit_y, num_steps=150)
+    fit = jax.jit(hyperfit.fit, static_argnames=("num_steps", "optimizer"))(
+        fit_x, fit_y, num_steps=150, optimizer="adam")
     hyper = fit.params
     print("fitted hyperparameters:", jax.tree.map(lambda a: np.round(np.asarray(a), 4), hyper))
 

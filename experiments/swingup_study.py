@@ -18,6 +18,9 @@ Stages (each writes under --out, default docs/results/swingup):
           (which applies the tuned settings in `config.METHOD_PRESETS`), PPO and SAC per seed with
           their tuned settings from tuning.json and the same environment-step budget. Writes
           heldout.npz (curves), heldout.json (per-seed steps to 50% / 90% success, wall times).
+``gpfig``  What the GP sees on the swing-up task, early and late (Fig. 2/4 style), and whether
+          each GP method's roll-outs reach the upright region sooner (`gp_figure`), seeds
+          1000-1002.
 ``report`` The plot (success rate and reward per step of the deterministic policy against
           environment steps, mean and 95% t-band over seeds) and the steps-to-success table
           (heldout.md), from heldout.npz/json.
@@ -35,6 +38,7 @@ Usage:
   python experiments/swingup_study.py tune
   python experiments/swingup_study.py heldout
   python experiments/swingup_study.py report
+  python experiments/swingup_study.py gpfig
 """
 
 from __future__ import annotations
@@ -353,10 +357,118 @@ def report(out: str) -> str:
     return text
 
 
+# ----------------------------------------------------------------------------------------- gpfig
+
+GP_METHODS = ("gp_pg", "guided_variance", "guided_direction")
+UPRIGHT_BAND = 0.5  # rad: "in the upright region"
+
+
+def gp_figure(out: str, seeds, dtype: str, chunk: int = 10, episodes: int = 5) -> dict:
+    """What the GP sees, early and late (Fig. 2/4 on the swing-up task), and how soon each method's
+    roll-outs reach the upright region.
+
+    Each GP method is trained with its tuned settings on `seeds` (held-out seeds; nothing is
+    chosen here) in chunks of `chunk` updates; after every chunk `episodes` roll-outs of the
+    method's own policy (GP and theta held fixed, keys apart from training) give the share of
+    steps within UPRIGHT_BAND of upright and the highest point reached (max of -cos phi, 1 =
+    upright). For the first seed, the GP's relative variance sigma^2/sigma_f^2 and its value
+    V(s) = Q_GP(s, c(s)) on a (phi, omega) grid, with the visited states, after the first chunk
+    ("early") and the last ("late").
+    """
+    from gpguided_jax import analysis
+    from gpguided_jax import train as train_lib
+
+    keys = reproduce.seed_keys(seeds)
+    fit = jax.jit(jax.vmap(train_lib.make_train(base_config("gp_pg", dtype=dtype)).fit_kernel_for_seed))
+    priors = fit(keys)
+    phi = np.linspace(-math.pi / 2, 3 * math.pi / 2, 73)
+    omega = np.linspace(-8.0, 8.0, 65)
+    curves, snaps = {}, {}
+    for m in GP_METHODS:
+        cfg = base_config(m, dtype=dtype)
+        train = train_lib.make_train(cfg)
+        state = jax.jit(jax.vmap(lambda k, p, t=train, c=cfg: t.init(k, c, p)))(keys, priors)
+
+        def step(st, key, c, t=train, cf=cfg):
+            st, _ = t.run_chunk(st, cf, chunk)
+            ep = t.episodes(jax.random.fold_in(key, 0x5EED + c), st, cf, episodes)
+            return st, ep.states
+
+        step = jax.jit(jax.vmap(step, in_axes=(0, 0, None)))
+        share, height = [], []
+        for c in range(cfg.num_updates // chunk):
+            state, visited = step(state, keys, c)
+            visited = np.asarray(visited)  # (S, E, H, 2)
+            up = np.abs(np.mod(visited[..., 0], 2 * math.pi) - math.pi) < UPRIGHT_BAND
+            share.append(up.mean(axis=(1, 2)))
+            height.append((-np.cos(visited[..., 0])).max(axis=(1, 2)))
+            if c in (0, cfg.num_updates // chunk - 1):
+                st0 = jax.tree_util.tree_map(lambda x: x[0], state)
+                controller = train_lib.make_controller(cfg)
+                value, var = analysis.gp_surface(st0.gp, st0.kernel, controller,
+                                                 st0.theta.controller, phi, omega)
+                snaps[m, "early" if c == 0 else "late"] = dict(
+                    rel=np.asarray(var) / float(st0.kernel.signal_variance),
+                    value=np.asarray(value), visited=visited[0].reshape(-1, 2),
+                    updates=(c + 1) * chunk)
+        curves[m] = dict(updates=chunk * np.arange(1, cfg.num_updates // chunk + 1),
+                         upright_share=np.stack(share, 1), height=np.stack(height, 1))
+        log(f"[gpfig {m}] upright share by chunk (mean over seeds): "
+            f"{np.round(curves[m]['upright_share'].mean(0), 3).tolist()}")
+
+    fig, axes = plt.subplots(3, 4, figsize=(19, 12))
+    pw = lambda v: np.mod(v + math.pi / 2, 2 * math.pi) - math.pi / 2  # noqa: E731 (axis range)
+    vals = np.concatenate([snaps[k]["value"].ravel() for k in snaps])
+    vlo, vhi = np.percentile(vals, [2, 98])
+    for r, m in enumerate(GP_METHODS):
+        for c, (when, key, norm, cmap, label) in enumerate((
+                ("early", "rel", matplotlib.colors.LogNorm(1e-3, 1.0, clip=True), "viridis", "σ²/σ_f²"),
+                ("late", "rel", matplotlib.colors.LogNorm(1e-3, 1.0, clip=True), "viridis", "σ²/σ_f²"),
+                ("early", "value", matplotlib.colors.Normalize(vlo, vhi), "magma", "V(s)"),
+                ("late", "value", matplotlib.colors.Normalize(vlo, vhi), "magma", "V(s)"))):
+            ax, snap = axes[r][c], snaps[m, when]
+            mesh = ax.pcolormesh(phi, omega, snap[key].T, shading="auto", norm=norm, cmap=cmap)
+            v = snap["visited"]
+            ax.scatter(pw(v[:, 0]), v[:, 1], s=1, c="w", alpha=0.5)
+            ax.plot([math.pi], [0], "*", ms=12, c="gold", mec="k")
+            ax.set(xlim=(phi[0], phi[-1]), ylim=(omega[0], omega[-1]), xlabel="φ [rad] (π = upright)",
+                   ylabel="ω [rad/s]", title=f"{m}: {label}, after {snap['updates']} updates")
+            fig.colorbar(mesh, ax=ax)
+    fig.suptitle(f"Swing-up: what the GP sees, early and late (seed {seeds[0]}; white: states of "
+                 f"{episodes} roll-outs of the method's own policy; star: upright)")
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "swingup_gp_early_late.png"), dpi=100)
+    plt.close(fig)
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    for i, m in enumerate(GP_METHODS):
+        u = curves[m]["updates"]
+        for ax, key in ((a, "upright_share"), (b, "height")):
+            mean, half = baselines.ci95(curves[m][key])
+            ax.plot(u, mean, "o-", ms=3, color=f"C{i + 1}", label=m)
+            ax.fill_between(u, mean - half, mean + half, color=f"C{i + 1}", alpha=0.15)
+    a.set(xlabel="updates", ylabel=f"share of steps within {UPRIGHT_BAND} rad of upright")
+    b.set(xlabel="updates", ylabel="highest point reached (-cos φ; 1 = upright)")
+    for ax in (a, b):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(f"Swing-up: does guided exploration reach the upright region sooner? "
+                 f"({len(seeds)} seeds, {episodes} roll-outs each per point, 95% t-band)")
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "swingup_upright_region.png"), dpi=110)
+    plt.close(fig)
+    summary = {m: {"updates": curves[m]["updates"].tolist(),
+                   "upright_share_mean": curves[m]["upright_share"].mean(0).tolist(),
+                   "height_mean": curves[m]["height"].mean(0).tolist()} for m in GP_METHODS}
+    summary["seeds"] = list(seeds)
+    reproduce.atomic_write_text(os.path.join(out, "gp_figure.json"), json.dumps(summary, indent=2))
+    return summary
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("stage", choices=("tune", "heldout", "report"))
+    ap.add_argument("stage", choices=("tune", "heldout", "report", "gpfig"))
     ap.add_argument("--out", default="docs/results/swingup")
     ap.add_argument("--dtype", default="float32", choices=config_lib.DTYPES)
     ap.add_argument("--only", nargs="+", default=None, help="tune only these methods/baselines")
@@ -383,6 +495,8 @@ def main(argv=None) -> int:
         with open(path) as f:
             heldout(args.out, HELDOUT_SEEDS, json.load(f), args.dtype)
         print(report(args.out))
+    elif args.stage == "gpfig":
+        gp_figure(args.out, HELDOUT_SEEDS[:3], args.dtype)
     else:
         print(report(args.out))
     return 0
