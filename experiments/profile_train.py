@@ -13,7 +13,8 @@ state after `--warmup` updates, when the GP holds its basis vectors):
 * full_update: one_update itself (everything, as the training loop runs it).
 
 For the GP update, XLA's cost analysis of one projected GP step (straight-line code; a loop's
-cost analysis counts its body once) times the points taken in gives the achieved FLOP/s. Host work between chunks (device-to-host copy of the records and the checkpoint write) is
+cost analysis counts its body once) times the points taken in gives the achieved FLOP/s. Host
+work between chunks (device-to-host copy of the records and the checkpoint write) is
 timed on a `reproduce.run_method` call. Prints JSON.
 
 Usage:

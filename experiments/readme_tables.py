@@ -170,7 +170,7 @@ def profile_table() -> str:
     for m, r in pr["methods"].items():
         full = r["full_update_s"]
 
-        def share(k):
+        def share(k, r=r, full=full):
             return f"{100 * r[k] / full:.0f}%" if k in r else "–"
 
         gf = (f"{r['gp_update_achieved_gflops_per_s']:.1f} GFLOP/s"
