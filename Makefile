@@ -51,6 +51,8 @@ swingup: $(STAMP)
 	$(PY) experiments/swingup_study.py tune
 	$(PY) experiments/swingup_study.py heldout
 	$(PY) experiments/swingup_study.py gpfig
+	$(PY) experiments/swingup_diagnostics.py warm sac
+	$(PY) experiments/swingup_diagnostics.py warm --warm-lr 0.003
 	$(PY) experiments/readme_tables.py --write
 
 demo: $(STAMP)

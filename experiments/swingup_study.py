@@ -320,14 +320,18 @@ def report(out: str) -> str:
     reproduce.atomic_write_text(os.path.join(out, "heldout_table.json"), json.dumps(rows, indent=2))
 
     def fmt(r, key):
-        if r[key + "_reached"] == 0:
-            return f"not reached (0/{r['seeds']})"
-        m, lo, hi = (r[key + s] for s in ("_median", "_low", "_high"))
+        k, n = r[key + "_reached"], r["seeds"]
+        if k == 0:
+            return f"0/{n}"
         f = lambda v: "∞" if not np.isfinite(v) else f"{v / 1000:.0f}k"  # noqa: E731
-        return f"{f(m)} [{f(lo)}, {f(hi)}] ({r[key + '_reached']}/{r['seeds']})"
+        got = [v for v in r[key] if np.isfinite(v)]
+        m, lo, hi = (r[key + s] for s in ("_median", "_low", "_high"))
+        return (f"{k}/{n}; median {f(m)} [{f(lo)}, {f(hi)}]; reached at "
+                f"{f(min(got))}–{f(max(got))}" if k > 1 else f"{k}/{n}; at {f(got[0])}")
 
-    md = ["| method | steps to 50% success | steps to 90% success | final success | "
-          "final reward/step | wall time [s] |", "|---|---|---|---|---|---|"]
+    md = ["| method | 50% success: seeds; steps (median over all seeds [95% CI]; range where "
+          "reached) | 90% success: the same | final success | final reward/step | wall time [s] |",
+          "|---|---|---|---|---|---|"]
     for r in rows:
         md.append(f"| {r['method']} | {fmt(r, 'steps_to_50')} | {fmt(r, 'steps_to_90')} | "
                   f"{r['final_success']:.2f} | {r['final_reward']:.3f} | {r['wall_s']:.0f} |")

@@ -13,7 +13,10 @@ lo + (hi - lo) sigmoid(u), u unconstrained. The line search needs only the likel
 Cholesky) at trial points and the closed-form gradient at accepted ones, so 15 iterations cost
 about a quarter of the 100 Adam steps used before and end at a higher likelihood (measured on the
 paper preset's data, 10 seeds: every seed's NLML on all 2000 pairs lower, by 0.006 nats per pair
-on average; `experiments/bench_hyperfit.py`). Adam (`optimizer="adam"`) remains available.
+on average; `experiments/bench_hyperfit.py`). Adam (`optimizer="adam"`) remains available, and
+training uses it by default (`TrainConfig.hyperfit_optimizer`, 100 steps): on the paper preset the
+L-BFGS fit changed guided_direction's results and made them dtype-dependent
+(docs/results/lbfgs_fit/README.md).
 
 The prior mean is zero, as in the online GP (`sparse_gp`), which has no mean function: the fitted
 signal variance therefore also absorbs the targets' offset. Centre the targets first if the online

@@ -374,7 +374,8 @@ def fit_prior(prog: Program, key, cfg: TrainConfig) -> GPPrior:
     if n < xs.shape[0]:
         idx = jax.random.choice(key_subset, xs.shape[0], (n,), replace=False)
         xs, ys = xs[idx], ys[idx]
-    kernel = hyperfit.fit(xs, ys - mean, num_steps=static.hyperfit_steps).params
+    kernel = hyperfit.fit(xs, ys - mean, num_steps=static.hyperfit_steps,
+                          optimizer=static.hyperfit_optimizer).params
     return GPPrior(kernel, mean)
 
 

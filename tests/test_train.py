@@ -105,6 +105,7 @@ def test_sweep_over_traced_field_is_one_program():
         ("age_fn", "linear"),
         ("optimizer", "lbfgs"),
         ("gp_stride", 0),
+        ("hyperfit_optimizer", "sgd"),
         ("eval_episodes", -1),
         ("success_hold_time", 0.0),
     ],
