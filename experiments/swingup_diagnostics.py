@@ -69,7 +69,8 @@ def warm_start(seeds, learning_rate=None) -> dict:
                   "final_success_per_seed": reproduce.final_performance(succ).tolist(),
                   "first_10_updates_reward": float(rew[:, :10].mean()),
                   "final_reward": float(reproduce.final_performance(rew).mean())}
-        log(f"[warm {m} lr {float(cfg.learning_rate):g}] success first 10 updates {out[m]['first_10_updates_success']:.2f} -> "
+        log(f"[warm {m} lr {float(cfg.learning_rate):g}] success first 10 updates "
+            f"{out[m]['first_10_updates_success']:.2f} -> "
             f"final {out[m]['final_success']:.2f}; reward {out[m]['first_10_updates_reward']:.3f} "
             f"-> {out[m]['final_reward']:.3f}")
     out["fitted_controller_mse"] = mse

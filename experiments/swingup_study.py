@@ -448,16 +448,19 @@ def gp_figure(out: str, seeds, dtype: str, chunk: int = 10, episodes: int = 5) -
     for i, m in enumerate(GP_METHODS):
         u = curves[m]["updates"]
         for ax, key in ((a, "upright_share"), (b, "height")):
-            mean, half = baselines.ci95(curves[m][key])
-            ax.plot(u, mean, "o-", ms=3, color=f"C{i + 1}", label=m)
-            ax.fill_between(u, mean - half, mean + half, color=f"C{i + 1}", alpha=0.15)
-    a.set(xlabel="updates", ylabel=f"share of steps within {UPRIGHT_BAND} rad of upright")
-    b.set(xlabel="updates", ylabel="highest point reached (-cos φ; 1 = upright)")
+            ax.plot(u, curves[m][key].mean(0), "o-", ms=3, lw=2, color=f"C{i + 1}",
+                    label=f"{m} (mean)")
+            ax.plot(u, curves[m][key].T, "-", lw=0.7, alpha=0.5, color=f"C{i + 1}")
+    a.set(xlabel="updates", ylabel=f"share of steps within {UPRIGHT_BAND} rad of upright",
+          ylim=(-0.02, 1.02))
+    b.set(xlabel="updates", ylabel="highest point reached (-cos φ; 1 = upright)", ylim=(-1.05, 1.05))
+    b.axhline(1.0, color="gold", lw=1.5, label="upright")
+    b.axhline(0.0, color="gray", ls=":", lw=1, label="horizontal")
     for ax in (a, b):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(f"Swing-up: does guided exploration reach the upright region sooner? "
-                 f"({len(seeds)} seeds, {episodes} roll-outs each per point, 95% t-band)")
+                 f"({len(seeds)} seeds: thin lines; {episodes} roll-outs per seed and point)")
     fig.tight_layout()
     fig.savefig(os.path.join(out, "swingup_upright_region.png"), dpi=110)
     plt.close(fig)

@@ -12,9 +12,9 @@ a backtracking (Armijo) line search, on a smooth box parametrisation: each log-p
 lo + (hi - lo) sigmoid(u), u unconstrained. The line search needs only the likelihood (one
 Cholesky) at trial points and the closed-form gradient at accepted ones, so 15 iterations cost
 about a quarter of the 100 Adam steps used before and end at a higher likelihood (measured on the
-paper preset's data, 10 seeds: every seed's NLML on all 2000 pairs lower, by 0.006 nats per pair
-on average; `experiments/bench_hyperfit.py`). Adam (`optimizer="adam"`) remains available, and
-training uses it by default (`TrainConfig.hyperfit_optimizer`, 100 steps): on the paper preset the
+paper preset's data, seeds 100-109: every seed's NLML on all 2000 pairs lower, by 0.008 nats per
+pair on average; `experiments/bench_hyperfit.py`, docs/results/hyperfit.json). Adam
+(`optimizer="adam"`) remains available, and training uses it by default (`TrainConfig.hyperfit_optimizer`, 100 steps): on the paper preset the
 L-BFGS fit changed guided_direction's results and made them dtype-dependent
 (docs/results/lbfgs_fit/README.md).
 
