@@ -7,16 +7,16 @@ the zero-mean ARD squared-exponential prior with Gaussian noise,
 
 with L the Cholesky factor of K + sigma_n^2 I, is minimised over the log-parameters
 (log l_1..l_D, log sigma_f^2, log sigma_n^2) in a `lax.scan`, so one fit is one compiled program and
-`jax.vmap(fit)` fits several seeds' data sets at once. The default optimiser is L-BFGS (optax) with
+`jax.vmap(fit)` fits several seeds' data sets at once. `fit`'s default optimiser is L-BFGS (optax) with
 a backtracking (Armijo) line search, on a smooth box parametrisation: each log-parameter is
 lo + (hi - lo) sigmoid(u), u unconstrained. The line search needs only the likelihood (one
 Cholesky) at trial points and the closed-form gradient at accepted ones, so 15 iterations cost
 about a quarter of the 100 Adam steps used before and end at a higher likelihood (measured on the
 paper preset's data, seeds 100-109: every seed's NLML on all 2000 pairs lower, by 0.008 nats per
 pair on average; `experiments/bench_hyperfit.py`, docs/results/hyperfit.json). Adam
-(`optimizer="adam"`) remains available, and training uses it by default (`TrainConfig.hyperfit_optimizer`, 100 steps): on the paper preset the
-L-BFGS fit changed guided_direction's results and made them dtype-dependent
-(docs/results/lbfgs_fit/README.md).
+(`optimizer="adam"`) remains available, and training uses it by default
+(`TrainConfig.hyperfit_optimizer`, 100 steps): on the paper preset the L-BFGS fit changed
+guided_direction's results and made them dtype-dependent (docs/results/lbfgs_fit/README.md).
 
 The prior mean is zero, as in the online GP (`sparse_gp`), which has no mean function: the fitted
 signal variance therefore also absorbs the targets' offset. Centre the targets first if the online
