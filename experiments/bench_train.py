@@ -13,7 +13,6 @@ Output: JSON on stdout.
 
 import argparse
 import json
-import math
 import time
 
 import jax
@@ -21,68 +20,17 @@ import jax.numpy as jnp
 import numpy as np
 
 import gpguided_jax
+from gpguided_jax import bench
 from gpguided_jax import config as C
-from gpguided_jax import gp_reference
 from gpguided_jax import train as T
 
 gpguided_jax.enable_x64()  # float64 (the package leaves the choice to its user)
 
 
 def numpy_gp_pg_updates(cfg, prior, num_updates, rng):
-    """Per-seed NumPy Algorithm 1 (method gp_pg, linear controller): returns wall seconds.
-
-    `prior` is the seed's `train.GPPrior`; the reference GP has a zero prior mean, so it is fed
-    centred returns and its predictions are shifted back, as the JAX GP does internally."""
-    kernel, m0 = prior.kernel, float(prior.mean)
-    p = cfg.pendulum
-    m, l, g, dt = float(p.mass), float(p.length), float(p.gravity), float(p.dt)
-    b, umax, noise = float(p.friction), float(p.max_torque), float(p.reward_noise_std)
-    gamma, lr = float(cfg.discount), float(cfg.learning_rate)
-    w, log_std = np.zeros(4), float(cfg.init_log_std)
-    gp = gp_reference.OnlineGP(
-        cfg.gp_capacity, 4, np.asarray(kernel.lengthscales), float(kernel.signal_variance),
-        float(kernel.noise_variance), novelty_tol=float(cfg.novelty_tol),
-        age_penalty=float(cfg.age_penalty), age_scale=float(cfg.age_scale), age_fn=cfg.age_fn)
-
-    def f(y, u):
-        return np.array([y[1], (u - b * y[1] - m * g * l * math.sin(y[0])) / (m * l * l)])
-
-    t0 = time.perf_counter()
-    for t in range(num_updates):
-        scores, feats = [], []
-        for _ in range(cfg.episodes_per_update):
-            s = np.asarray(p.start_mean, float) + np.asarray(p.start_std, float) * rng.normal(size=2)
-            s[0] %= 2 * math.pi
-            rewards = []
-            for _ in range(cfg.episode_length):
-                psi = np.array([math.sin(s[0]), math.cos(s[0]), s[1], 1.0])
-                z = math.tanh(w @ psi)
-                c = 5.0 * z
-                sigma = math.exp(log_std)
-                a = c + sigma * rng.normal()
-                dc = 5.0 * (1 - z * z) * psi
-                scores.append(np.append((a - c) / sigma**2 * dc, (a - c) ** 2 / sigma**2 - 1.0))
-                feats.append(np.array([psi[0], psi[1], s[1], a]))
-                u = min(max(a, -umax), umax)
-                k1 = f(s, u)
-                k2 = f(s + 0.5 * dt * k1, u)
-                k3 = f(s + 0.5 * dt * k2, u)
-                k4 = f(s + dt * k3, u)
-                s = s + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-                s[0] %= 2 * math.pi
-                rewards.append(-(s[0] - math.pi) ** 2 - (s[1] / 4) ** 2 + noise * rng.normal())
-            ret = np.zeros(len(rewards))
-            acc = 0.0
-            for i in reversed(range(len(rewards))):
-                acc = rewards[i] + gamma * acc
-                ret[i] = acc
-            for x, y in zip(feats[-cfg.episode_length:], ret):
-                gp.update(x, y - m0, t)
-        q = m0 + np.array([gp.predict(x)[0] for x in feats])
-        grad = (np.array(scores) * q[:, None]).sum(0) / cfg.episodes_per_update
-        w = w + lr * grad[:4]
-        log_std = log_std + lr * grad[4]
-    return time.perf_counter() - t0
+    """Per-seed NumPy Algorithm 1 (method gp_pg): wall seconds for `num_updates` updates
+    (`gpguided_jax.bench.numpy_gp_pg_seconds_per_update`, the loop `gpguided bench` times)."""
+    return bench.numpy_gp_pg_seconds_per_update(cfg, prior, num_updates, rng) * num_updates
 
 
 def main(argv=None):

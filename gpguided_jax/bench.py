@@ -117,7 +117,7 @@ def bench_gp(repeats: int, seeds: int = 10, n: int = 3000, capacity: int = 100,
             "ratio": jax_rate / np_rate}
 
 
-def _numpy_gp_pg_seconds_per_update(cfg, prior, num_updates, rng) -> float:
+def numpy_gp_pg_seconds_per_update(cfg, prior, num_updates, rng) -> float:
     """Per-seed NumPy Algorithm 1 (gp_pg, linear controller): wall seconds per update."""
     kernel, m0 = prior.kernel, float(prior.mean)
     p = cfg.pendulum
@@ -213,7 +213,7 @@ def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "pap
     for method in config_lib.METHODS:
         out["methods"][method] = one(method)
     prior0 = jax.tree_util.tree_map(lambda x: np.asarray(x)[0], priors)
-    per_update = _numpy_gp_pg_seconds_per_update(cfg_gp, prior0, numpy_updates,
+    per_update = numpy_gp_pg_seconds_per_update(cfg_gp, prior0, numpy_updates,
                                                  np.random.default_rng(0))
     numpy_run = per_update * cfg_gp.num_updates * seeds
     out["numpy_gp_pg"] = {"measured_updates": numpy_updates, "seconds_per_update_one_seed": per_update,

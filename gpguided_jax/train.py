@@ -209,11 +209,11 @@ def episode_success(prog: Program, next_states, cfg: TrainConfig) -> jax.Array:
     """`swingup.success` of one episode's visited states (False if it is shorter than the hold
     time)."""
     # the hold time in steps is static: it uses the control interval of make_train's config
-    n = swingup.hold_steps(float(np.asarray(prog.config.pendulum.dt)), prog.config.success_hold_time)
-    if n > next_states.shape[0]:
+    dt = float(np.asarray(prog.config.pendulum.dt))
+    if swingup.hold_steps(dt, prog.config.success_hold_time) > next_states.shape[0]:
         return jnp.zeros((), bool)
-    phi = pendulum.wrap_angle(next_states[-n:, 0])
-    return jnp.all(jnp.abs(phi - jnp.pi) < cfg.success_tolerance)
+    return swingup.success(next_states, dt, tolerance=cfg.success_tolerance,
+                           hold_time=prog.config.success_hold_time)
 
 
 def evaluate(prog: Program, key, theta, cfg: TrainConfig):
