@@ -1,9 +1,12 @@
 """How far a seed's learning curve moves (1) when it runs alone instead of in a batch of seeds, and
 (2) between float32 and float64.
 
-(1) Batch vs alone: every method on the paper preset for seeds S, once as one vmapped batch and once
-    per seed alone (a batch of one), float64. XLA compiles a different program for each batch size,
-    so results can differ in the last bits, and training can amplify that. Reported per method: the
+(1) Batch vs alone: every method on the paper preset for seeds S, once together and once per seed
+    alone (a batch of one), float64, for each way a device can run its seeds
+    (`reproduce.per_seed_program`): 'map' (one seed after another, the CPU default: the seed's
+    program is the same in both, so the results should agree bit for bit) and 'vmap' (one batch,
+    what an accelerator runs: XLA compiles a different program for each batch size, so results
+    can differ in the last bits, and training can amplify that). Reported per method: the
     largest |difference| of the per-update mean reward over all seeds and updates, and of the final
     performance (mean over the last 10% of updates), and the number of seeds that differ at all.
 (2) float32 vs float64: from two finished `gpguided reproduce` runs on the same seeds (`--f64`,
@@ -39,12 +42,15 @@ from gpguided_jax import train as train_lib
 gpguided_jax.enable_x64()
 
 
-def batch_vs_alone(method: str, seeds: list[int], preset: str, overrides: dict) -> dict:
+def batch_vs_alone(method: str, seeds: list[int], preset: str, overrides: dict,
+                   seed_loop: str = "map") -> dict:
     cfg = config_lib.preset(preset, method=method, **overrides)
     train = train_lib.make_train(cfg)
-    fit = jax.jit(jax.vmap(train.fit_kernel_for_seed))
-    run = jax.jit(jax.vmap(lambda k, p: train.run_chunk(train.init(k, cfg, p), cfg)[1].mean_reward))
-    run_plain = jax.jit(jax.vmap(lambda k: train(k)[1].mean_reward))
+    mesh = reproduce.make_mesh(1)
+    fit = reproduce.per_seed_program(train.fit_kernel_for_seed, mesh, seed_loop)
+    run = reproduce.per_seed_program(
+        lambda k, p: train.run_chunk(train.init(k, cfg, p), cfg)[1].mean_reward, mesh, seed_loop)
+    run_plain = reproduce.per_seed_program(lambda k: train(k)[1].mean_reward, mesh, seed_loop)
     keys = reproduce.seed_keys(seeds)
     t0 = time.perf_counter()
     if cfg.uses_gp:
@@ -65,6 +71,7 @@ def batch_vs_alone(method: str, seeds: list[int], preset: str, overrides: dict) 
     final = np.abs(reproduce.final_performance(batch) - reproduce.final_performance(alone))
     return dict(
         seeds=len(seeds),
+        seed_loop=seed_loop,
         max_abs_curve_diff=float(curve.max()),
         max_abs_final_diff=float(final.max()),
         median_abs_final_diff=float(np.median(final)),
@@ -103,12 +110,15 @@ def f32_vs_f64(dir64: str, dir32: str) -> dict:
 
 def markdown(result: dict) -> str:
     lines = []
-    if "batch_vs_alone" in result:
-        lines += ["| method | seeds | max |Δ| reward/step (any update) | max |Δ| final | seeds that differ |",
-                  "|---|---|---|---|---|"]
-        for m, r in result["batch_vs_alone"].items():
-            lines.append(f"| {m} | {r['seeds']} | {r['max_abs_curve_diff']:.2e} | "
-                         f"{r['max_abs_final_diff']:.2e} | {r['seeds_that_differ']} |")
+    for key in ("batch_vs_alone", "batch_vs_alone_vmap"):
+        if key not in result:
+            continue
+        lines += ["| method | seed loop | seeds | max |Δ| reward/step (any update) | max |Δ| final | "
+                  "seeds that differ |", "|---|---|---|---|---|---|"]
+        for m, r in result[key].items():
+            lines.append(f"| {m} | {r.get('seed_loop', 'vmap')} | {r['seeds']} | "
+                         f"{r['max_abs_curve_diff']:.2e} | {r['max_abs_final_diff']:.2e} | "
+                         f"{r['seeds_that_differ']} |")
         lines.append("")
     if "f32_vs_f64" in result:
         lines += ["| method | seeds | median |Δ final| | max |Δ final| | IQM float64 [95% CI] | "
@@ -136,10 +146,11 @@ def main(argv=None) -> int:
     overrides = {} if args.num_updates is None else {"num_updates": args.num_updates}
     result: dict = {"preset": args.preset}
     if not args.skip_batch:
-        result["batch_vs_alone"] = {}
-        for m in args.methods:
-            result["batch_vs_alone"][m] = batch_vs_alone(m, args.seeds, args.preset, overrides)
-            print(f"[{m}] {result['batch_vs_alone'][m]}", file=sys.stderr, flush=True)
+        for key, loop in (("batch_vs_alone", "map"), ("batch_vs_alone_vmap", "vmap")):
+            result[key] = {}
+            for m in args.methods:
+                result[key][m] = batch_vs_alone(m, args.seeds, args.preset, overrides, loop)
+                print(f"[{m}, {loop}] {result[key][m]}", file=sys.stderr, flush=True)
     if args.f64 and args.f32:
         result["f32_vs_f64"] = f32_vs_f64(args.f64, args.f32)
     os.makedirs(args.out, exist_ok=True)

@@ -1,4 +1,7 @@
-"""Where the time of a training run goes, per method (paper preset, all seeds as one vmapped program).
+"""Where the time of a training run goes, per method (paper preset, the seeds run as
+`gpguided reproduce` runs them: `reproduce.per_seed_program` over one CPU device per core, each
+device taking its seeds one after another by default; `--seed-loop vmap --cpu-devices 1` profiles
+the one-batch program instead).
 
 The per-update computation (gpguided_jax.train.one_update) is split into its parts, each compiled
 on its own and timed over `--updates` updates for all seeds at a realistic point of a run (the
@@ -60,13 +63,23 @@ def _flops(compiled) -> float:
     return float(cost.get("flops", float("nan"))) if cost else float("nan")
 
 
-def profile_method(method: str, seeds: list[int], updates: int, warmup: int, dtype: str) -> dict:
+def _programs(seeds: list[int], loop: str):
+    """(per-seed program maker, sharded seed keys) on the mesh `gpguided reproduce` would use."""
+    mesh = reproduce.make_mesh(None, len(seeds))
+    if len(seeds) % mesh.devices.size:
+        mesh = reproduce.make_mesh(1)
+    keys = reproduce._shard(reproduce.seed_keys(seeds), mesh)
+    return (lambda fn: reproduce.per_seed_program(fn, mesh, loop)), keys
+
+
+def profile_method(method: str, seeds: list[int], updates: int, warmup: int, dtype: str,
+                   loop: str = "auto") -> dict:
     cfg = config_lib.preset("paper", method=method, dtype=dtype)
     prog = T.make_program(cfg)
     train = T.make_train(cfg)
-    keys = reproduce.seed_keys(seeds)
-    state = jax.jit(jax.vmap(train.init))(keys)
-    state, _ = jax.jit(jax.vmap(lambda s: train.run_chunk(s, cfg, warmup)))(state)
+    per_seed, keys = _programs(seeds, loop)
+    state = per_seed(lambda k: train.init(k, cfg))(keys)
+    state, _ = per_seed(lambda s: train.run_chunk(s, cfg, warmup))(state)
     jax.block_until_ready(state)
     E = cfg.episodes_per_update
 
@@ -77,9 +90,9 @@ def profile_method(method: str, seeds: list[int], updates: int, warmup: int, dty
         return jax.lax.scan(one, state.gp, jax.random.split(state.key, E))[1]
 
     def repeat(body):
-        """`body(state) -> state` scanned `updates` times, vmapped over seeds, jitted."""
-        return jax.jit(jax.vmap(lambda s: jax.lax.scan(lambda c, _: (body(c), None), s, None,
-                                                       length=updates)[0]))
+        """`body(state) -> state` scanned `updates` times, for every seed, compiled."""
+        return per_seed(lambda s: jax.lax.scan(lambda c, _: (body(c), None), s, None,
+                                               length=updates)[0])
 
     def rollout_body(policy):
         def body(s):
@@ -89,18 +102,20 @@ def profile_method(method: str, seeds: list[int], updates: int, warmup: int, dty
             return s._replace(key=key)
         return body
 
-    eps = jax.jit(jax.vmap(lambda s: episodes(s, prog.policy)))(state)
-    returns = jax.vmap(jax.vmap(estimators.discounted_returns, (0, None)), (0, None))(
-        eps.rewards, cfg.discount)
-    feats = jax.vmap(jax.vmap(T._features))(eps.states, eps.actions)
+    def data(s):
+        eps = episodes(s, prog.policy)
+        returns = jax.vmap(estimators.discounted_returns, (0, None))(eps.rewards, cfg.discount)
+        return jax.vmap(T._features)(eps.states, eps.actions), returns
+
+    feats, returns = per_seed(data)(state)
 
     out = {}
     out["rollout_fixed_noise_s"] = _time(repeat(rollout_body(prog.behaviour)), state)
     out["rollout_policy_s"] = _time(repeat(rollout_body(prog.policy)), state)
     if cfg.uses_gp:
         # the same episodes' data every time (the GP keeps changing, as in training)
-        gp_fn = jax.jit(jax.vmap(lambda s, f, r: jax.lax.scan(
-            lambda c, _: (_gp(c, f, r), None), s, None, length=updates)[0]))
+        gp_fn = per_seed(lambda s, f, r: jax.lax.scan(
+            lambda c, _: (_gp(c, f, r), None), s, None, length=updates)[0])
 
         def _gp(s, f, r):
             gp = s.gp
@@ -109,44 +124,48 @@ def profile_method(method: str, seeds: list[int], updates: int, warmup: int, dty
             return s._replace(gp=gp)
 
         out["gp_update_s"] = _time(gp_fn, state, feats, returns)
-        pred_fn = jax.jit(jax.vmap(lambda s, f: jax.lax.scan(
+        pred_fn = per_seed(lambda s, f: jax.lax.scan(
             lambda acc, _: (acc + jnp.sum(jax.vmap(jax.vmap(
                 lambda x: sparse_gp.predict(s.gp, x + 1e-9 * acc, s.kernel)[0]))(f)), None),
-            jnp.zeros((), s.gp.alpha.dtype), None, length=updates)[0]))
+            jnp.zeros((), s.gp.alpha.dtype), None, length=updates)[0])
         out["prediction_s"] = _time(pred_fn, state, feats)
         # FLOPs of one GP point on the projected path (no insertion: most points once the set is
         # full), from XLA's cost analysis of straight-line code (the cost analysis of a loop counts
         # its body once, so the whole run's count is not usable), for all seeds
-        x0, y0 = feats[:, 0, 0], returns[:, 0, 0]
+        state0 = jax.tree.map(lambda a: np.asarray(a)[0], jax.device_get(state))
+        x0, y0 = np.asarray(feats)[0, 0, 0], np.asarray(returns)[0, 0, 0]
 
         def projected(s, x, y):
             proj = sparse_gp.project(s.gp, x, s.kernel)
             return sparse_gp._projected_update(s.gp, proj, y, s.kernel.noise_variance, True)
 
-        point_flops = _flops(jax.jit(jax.vmap(projected)).lower(state, x0, y0).compile())
+        point_flops = len(seeds) * _flops(jax.jit(projected).lower(state0, x0, y0).compile())
         points = updates * E * cfg.episode_length
         out["gp_points"] = points
         out["gp_point_flops_all_seeds"] = point_flops
         out["gp_update_achieved_gflops_per_s"] = point_flops * points / out["gp_update_s"] / 1e9
-    full = jax.jit(jax.vmap(lambda s: train.run_chunk(s, cfg, updates)))
+    full = per_seed(lambda s: train.run_chunk(s, cfg, updates))
     compiled = full.lower(state).compile()
     out["full_update_s"] = _time(compiled, state)
     out["per_update_ms"] = 1e3 * out["full_update_s"] / updates
     return out
 
 
-def host_overhead(seeds: list[int], chunk: int) -> dict:
+def host_overhead(seeds: list[int], chunk: int, loop: str = "auto") -> dict:
     """Wall time of `reproduce.run_method` minus its compiled chunks: copies and checkpoints."""
     cfg = config_lib.preset("paper", method="reinforce", num_updates=4 * chunk)
     with tempfile.TemporaryDirectory() as d:
-        reproduce.run_method(cfg, seeds, d, chunk_size=chunk, progress=lambda m: None)  # compile
+        mesh = reproduce.make_mesh(None, len(seeds))
+        kw = dict(chunk_size=chunk, progress=lambda m: None, mesh=mesh, seed_loop=loop)
+        reproduce.run_method(cfg, seeds, d, **kw)  # compile
         os.remove(os.path.join(d, "checkpoint_reinforce.npz"))
         t0 = time.perf_counter()
-        reproduce.run_method(cfg, seeds, d, chunk_size=chunk, progress=lambda m: None)
+        reproduce.run_method(cfg, seeds, d, **kw)
         wall = time.perf_counter() - t0
     train = T.make_train(cfg)
-    state = jax.jit(jax.vmap(train.init))(reproduce.seed_keys(seeds))
-    run = jax.jit(jax.vmap(lambda s: train.run_chunk(s, cfg, chunk)))
+    per_seed, keys = _programs(seeds, loop)
+    state = per_seed(lambda k: train.init(k, cfg))(keys)
+    run = per_seed(lambda s: train.run_chunk(s, cfg, chunk))
     device = 4 * _time(run, state)
     return {"chunks": 4, "wall_s": wall, "device_s": device, "host_s_per_chunk": (wall - device) / 4}
 
@@ -158,14 +177,21 @@ def main(argv=None) -> int:
     ap.add_argument("--updates", type=int, default=50)
     ap.add_argument("--warmup", type=int, default=100)
     ap.add_argument("--dtype", default="float64", choices=["float64", "float32"])
+    ap.add_argument("--seed-loop", default="auto", choices=["auto", "vmap", "map"])
+    ap.add_argument("--cpu-devices", type=int, default=len(os.sched_getaffinity(0)),
+                    help="JAX CPU devices (default: one per available core, as `gpguided reproduce`)")
     args = ap.parse_args(argv)
+    jax.config.update("jax_num_cpu_devices", args.cpu_devices)
     seeds = list(range(100, 100 + args.seeds))  # tuning seeds: this is not a result
     result = {"seeds": args.seeds, "updates": args.updates, "warmup": args.warmup, "dtype": args.dtype,
-              "jax": jax.__version__, "devices": [str(d) for d in jax.devices()], "methods": {}}
+              "jax": jax.__version__, "devices": [str(d) for d in jax.devices()],
+              "seed_loop": reproduce.resolve_seed_loop(args.seed_loop, reproduce.make_mesh()),
+              "methods": {}}
     for m in args.methods:
-        result["methods"][m] = profile_method(m, seeds, args.updates, args.warmup, args.dtype)
+        result["methods"][m] = profile_method(m, seeds, args.updates, args.warmup, args.dtype,
+                                              args.seed_loop)
         print(m, json.dumps(result["methods"][m]), file=sys.stderr, flush=True)
-    result["host"] = host_overhead(seeds, args.updates)
+    result["host"] = host_overhead(seeds, args.updates, args.seed_loop)
     print(json.dumps(result, indent=2))
     return 0
 

@@ -88,15 +88,18 @@ def failures_table(runs=("paper_float64", "paper_float32")) -> str:
 def consistency_table() -> str:
     with open(os.path.join(RESULTS, "consistency", "consistency.json")) as f:
         c = json.load(f)
-    lines = ["| method | seeds | batch vs alone: max \\|Δ\\| reward/step | "
-             "batch vs alone: max \\|Δ\\| final | "
+    lines = ["| method | seeds | batch vs alone (CPU default, map): max \\|Δ\\| reward/step | "
+             "batch vs alone (one vmapped batch): max \\|Δ\\| reward/step | "
+             "batch vs alone (vmap): max \\|Δ\\| final | "
              "float32 vs float64: median \\|Δ\\| final | max \\|Δ\\| final | IQM float64 [95% CI] | "
-             "IQM float32 [95% CI] |", "|---|---|---|---|---|---|---|---|"]
+             "IQM float32 [95% CI] |", "|---|---|---|---|---|---|---|---|---|"]
     for m, b in c["batch_vs_alone"].items():
         d = c["f32_vs_f64"][m]
+        v = c["batch_vs_alone_vmap"][m]
         lines.append(
             f"| {m} | {b['seeds']} / {d['seeds']} | {b['max_abs_curve_diff']:.1e} | "
-            f"{b['max_abs_final_diff']:.1e} | {d['median_abs_final_diff']:.4f} | "
+            f"{v['max_abs_curve_diff']:.1e} | "
+            f"{v['max_abs_final_diff']:.1e} | {d['median_abs_final_diff']:.4f} | "
             f"{d['max_abs_final_diff']:.4f} | {d['iqm_f64']:.3f} [{d['iqm_ci_f64'][0]:.3f}, "
             f"{d['iqm_ci_f64'][1]:.3f}] | {d['iqm_f32']:.3f} [{d['iqm_ci_f32'][0]:.3f}, "
             f"{d['iqm_ci_f32'][1]:.3f}] |")
@@ -145,49 +148,73 @@ def bench_table() -> str:
     return "\n".join(lines)
 
 
+SCALING_RUNS = (("scaling", "CPU default"), ("scaling_vmap", "one batch"))
+
+
 def scaling_table() -> str:
-    with open(os.path.join(RESULTS, "scaling", "scaling.json")) as f:
-        sc = json.load(f)
-    methods = list(sc["results"][0]["methods"])
-    lines = ["| seeds | whole paper run [s] | " + " | ".join(f"{m} seeds·updates/s" for m in methods)
+    """One row per (run, seeds): the CPU default (`--seed-loop map`, one device per core) and the
+    one-batch path an accelerator runs (`vmap`, one device), whose memory gives the 80 GB estimate."""
+    runs = []
+    for name, what in SCALING_RUNS:
+        path = os.path.join(RESULTS, name, "scaling.json")
+        if os.path.exists(path):
+            with open(path) as f:
+                runs.append((name, what, json.load(f)))
+    methods = list(runs[0][2]["results"][0]["methods"])
+    lines = ["| seed loop | seeds | whole paper run [s] | "
+             + " | ".join(f"{m} seeds·updates/s" for m in methods)
              + " | peak RSS [GiB] | XLA memory, largest program [MiB] | updates timed |",
-             "|---|---|" + "---|" * len(methods) + "---|---|---|"]
-    for r in sc["results"]:
-        timed = min(m.get("updates_timed", 400) for m in r["methods"].values())
-        lines.append(f"| {r['seeds']} | {r['whole_paper_run_s']:.0f} | "
-                     + " | ".join(f"{r['methods'][m]['seed_updates_per_s']:.0f}" for m in methods)
-                     + f" | {r['peak_rss_bytes'] / 2**30:.2f} | {r['device_bytes_max'] / 2**20:.0f} | "
-                     + ("all 400" if timed >= 400 else f"{timed} (extrapolated)") + " |")
+             "|---|---|---|" + "---|" * len(methods) + "---|---|---|"]
+    for _, what, sc in runs:
+        for r in sc["results"]:
+            timed = min(m.get("updates_timed", 400) for m in r["methods"].values())
+            loop = f"{r.get('seed_loop', 'vmap')}, {r.get('devices', 1)} device(s)"
+            lines.append(f"| {loop} | {r['seeds']} | {r['whole_paper_run_s']:.0f} | "
+                         + " | ".join(f"{r['methods'][m]['seed_updates_per_s']:.0f}" for m in methods)
+                         + f" | {r['peak_rss_bytes'] / 2**30:.2f} | {r['device_bytes_max'] / 2**20:.0f} | "
+                         + ("all 400" if timed >= 400 else f"{timed} (extrapolated)") + " |")
+    batch = next(sc for name, _, sc in runs if name == "scaling_vmap") if any(
+        name == "scaling_vmap" for name, _, _ in runs) else runs[0][2]
     lines.append("")
-    lines.append(f"Device memory per seed (slope of XLA's memory analysis): "
-                 f"{sc['device_bytes_per_seed'] / 2**20:.2f} MiB, so about "
-                 f"{sc['seeds_in_80_GB']:,} seeds fit in 80 GB (an estimate; no GPU was measured). "
-                 + _source("scaling/scaling.json"))
+    lines.append(f"Device memory per seed when the seeds run as one batch (slope of XLA's memory "
+                 f"analysis, vmap): {batch['device_bytes_per_seed'] / 2**20:.2f} MiB, so about "
+                 f"{batch['seeds_in_80_GB']:,} seeds fit in 80 GB (an estimate; no GPU was measured). "
+                 + _source(*(f"{name}/scaling.json" for name, _, _ in runs)))
     return "\n".join(lines)
 
 
 def profile_table() -> str:
-    with open(os.path.join(RESULTS, "profile.json")) as f:
-        pr = json.load(f)
-    lines = ["| method | one update [ms] | roll-out, fixed noise | roll-out, own policy | GP update "
-             "| Q_GP prediction | GP update achieved |", "|---|---|---|---|---|---|---|"]
-    for m, r in pr["methods"].items():
-        full = r["full_update_s"]
+    """Per method, where one update's time goes: the CPU default (profile.json) and, when present,
+    the one-batch program it replaced (profile_vmap.json: vmap on one device)."""
+    runs = []
+    for name in ("profile.json", "profile_vmap.json"):
+        path = os.path.join(RESULTS, name)
+        if os.path.exists(path):
+            with open(path) as f:
+                runs.append((name, json.load(f)))
+    lines = ["| seed loop | method | one update [ms] | roll-out, fixed noise | roll-out, own policy "
+             "| GP update | Q_GP prediction | GP update achieved |",
+             "|---|---|---|---|---|---|---|---|"]
+    for _, pr in runs:
+        loop = f"{pr.get('seed_loop', 'vmap')}, {len(pr['devices'])} device(s)"
+        for m, r in pr["methods"].items():
+            full = r["full_update_s"]
 
-        def share(k, r=r, full=full):
-            return f"{100 * r[k] / full:.0f}%" if k in r else "–"
+            def share(k, r=r, full=full):
+                return f"{100 * r[k] / full:.0f}%" if k in r else "–"
 
-        gf = (f"{r['gp_update_achieved_gflops_per_s']:.1f} GFLOP/s"
-              if "gp_update_achieved_gflops_per_s" in r else "–")
-        lines.append(f"| {m} | {r['per_update_ms']:.1f} | {share('rollout_fixed_noise_s')} | "
-                     f"{share('rollout_policy_s')} | {share('gp_update_s')} | "
-                     f"{share('prediction_s')} | {gf} |")
+            gf = (f"{r['gp_update_achieved_gflops_per_s']:.1f} GFLOP/s"
+                  if "gp_update_achieved_gflops_per_s" in r else "–")
+            lines.append(f"| {loop} | {m} | {r['per_update_ms']:.1f} | {share('rollout_fixed_noise_s')} | "
+                         f"{share('rollout_policy_s')} | {share('gp_update_s')} | "
+                         f"{share('prediction_s')} | {gf} |")
+    pr = runs[0][1]
     h = pr["host"]
     lines.append("")
     lines.append(f"Shares of one update, each part timed alone ({pr['seeds']} seeds, {pr['dtype']}); "
                  f"host work between chunks (records to host, checkpoint): "
                  f"{h['host_s_per_chunk']:.2f} s per chunk of {pr['updates']} updates. "
-                 + _source("profile.json"))
+                 + _source(*(name for name, _ in runs)))
     return "\n".join(lines)
 
 

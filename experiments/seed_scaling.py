@@ -33,8 +33,11 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CHUNK = 50
 
 
-def measure(num_seeds: int, measured_updates: int | None = None) -> dict:
+def measure(num_seeds: int, measured_updates: int | None = None, seed_loop: str = "auto",
+            cpu_devices: int = 1) -> dict:
     import jax
+
+    jax.config.update("jax_num_cpu_devices", cpu_devices)
     import numpy as np
 
     import gpguided_jax
@@ -43,10 +46,13 @@ def measure(num_seeds: int, measured_updates: int | None = None) -> dict:
     from gpguided_jax import train as train_lib
 
     gpguided_jax.enable_x64()
-    keys = reproduce.seed_keys(range(2000, 2000 + num_seeds))  # not a result: throughput only
-    out = {"seeds": num_seeds, "methods": {}}
+    mesh = reproduce.make_mesh(None, num_seeds)  # as `gpguided reproduce` runs the seeds
+    loop = reproduce.resolve_seed_loop(seed_loop, mesh)
+    seeds = reproduce.pad_seeds(range(2000, 2000 + num_seeds), mesh.devices.size)
+    keys = reproduce._shard(reproduce.seed_keys(seeds), mesh)  # not a result: throughput only
+    out = {"seeds": num_seeds, "devices": int(mesh.devices.size), "seed_loop": loop, "methods": {}}
     cfg_gp = config_lib.preset("paper", method="gp_pg")
-    fit = jax.jit(jax.vmap(train_lib.make_train(cfg_gp).fit_kernel_for_seed))
+    fit = reproduce.per_seed_program(train_lib.make_train(cfg_gp).fit_kernel_for_seed, mesh, loop)
     t0 = time.perf_counter()
     compiled_fit = fit.lower(keys).compile()
     out["hyperfit_compile_s"] = time.perf_counter() - t0
@@ -58,10 +64,13 @@ def measure(num_seeds: int, measured_updates: int | None = None) -> dict:
         cfg = config_lib.preset("paper", method=method)
         train = train_lib.make_train(cfg)
         if cfg.uses_gp:
-            state = jax.jit(jax.vmap(lambda k, p, t=train, c=cfg: t.init(k, c, p)))(keys, priors)
+            state = reproduce.per_seed_program(lambda k, p, t=train, c=cfg: t.init(k, c, p),
+                                               mesh, loop)(keys, priors)
         else:
-            state = jax.jit(jax.vmap(train.init))(keys)
-        run = jax.jit(jax.vmap(lambda s, t=train, c=cfg: t.run_chunk(s, c, CHUNK)))
+            state = reproduce.per_seed_program(lambda k, t=train, c=cfg: t.init(k, c), mesh,
+                                               loop)(keys)
+        run = reproduce.per_seed_program(lambda s, t=train, c=cfg: t.run_chunk(s, c, CHUNK),
+                                         mesh, loop)
         t0 = time.perf_counter()
         compiled = run.lower(state).compile()
         compile_s = time.perf_counter() - t0
@@ -111,7 +120,9 @@ def plot(results: list[dict], path: str) -> None:
     for ax in (a, b, c):
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7)
-    fig.suptitle("Paper preset, float64, 2-core CPU: every method's 400 updates")
+    r0 = results[0]
+    fig.suptitle(f"Paper preset, float64, 2-core CPU, {r0.get('devices', 1)} device(s), seed loop "
+                 f"{r0.get('seed_loop', 'vmap')}: every method's 400 updates")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -125,16 +136,21 @@ def main(argv=None) -> int:
                     help="seed counts above this time only --partial-updates updates and extrapolate "
                          "to 400 (default 30)")
     ap.add_argument("--partial-updates", type=int, default=100)
+    ap.add_argument("--seed-loop", default="auto", choices=["auto", "vmap", "map"],
+                    help="how each device runs its seeds (as `gpguided reproduce --seed-loop`)")
+    ap.add_argument("--cpu-devices", type=int, default=len(os.sched_getaffinity(0)),
+                    help="JAX CPU devices (default: one per available core, as `gpguided reproduce`)")
     ap.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--updates", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.one is not None:  # the child process
-        print(json.dumps(measure(args.one, args.updates)))
+        print(json.dumps(measure(args.one, args.updates, args.seed_loop, args.cpu_devices)))
         return 0
     results = []
     for n in args.seeds:
         extra = ["--updates", str(args.partial_updates)] if n > args.full_up_to else []
-        proc = subprocess.run([sys.executable, __file__, "--one", str(n), *extra],
+        proc = subprocess.run([sys.executable, __file__, "--one", str(n), *extra,
+                               "--seed-loop", args.seed_loop, "--cpu-devices", str(args.cpu_devices)],
                               capture_output=True, text=True, cwd=ROOT)
         if proc.returncode != 0:
             raise SystemExit(proc.stderr[-3000:])

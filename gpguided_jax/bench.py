@@ -93,8 +93,12 @@ def bench_gp(repeats: int, seeds: int = 10, n: int = 3000, capacity: int = 100,
     xs = jnp.asarray(np.stack([a for a, _ in streams]))
     ys = jnp.asarray(np.stack([b for _, b in streams]))
     ts = jnp.arange(n) // 150
-    run = jax.jit(jax.vmap(lambda x, y: sparse_gp.update_batch(
-        sparse_gp.init(capacity, 4), x, y, hyper, ts, **kw)))
+    mesh = reproduce.make_mesh(None, seeds)  # as training runs it: seeds over devices, per device
+    if seeds % mesh.devices.size:            # one after another on a CPU (`per_seed_program`)
+        mesh = reproduce.make_mesh(1)
+    xs, ys = reproduce._shard((xs, ys), mesh)
+    run = reproduce.per_seed_program(lambda x, y: sparse_gp.update_batch(
+        sparse_gp.init(capacity, 4), x, y, hyper, ts, **kw), mesh)
     t0 = time.perf_counter()
     jax.block_until_ready(run(xs, ys))
     compile_s = time.perf_counter() - t0
@@ -112,6 +116,7 @@ def bench_gp(repeats: int, seeds: int = 10, n: int = 3000, capacity: int = 100,
     jax_rate = seeds * n / jax_t["median"]
     np_rate = numpy_points / np_t["median"]
     return {"capacity": capacity, "seeds": seeds, "points_per_seed": n, "compile_s": compile_s,
+            "devices": int(mesh.devices.size),
             "jax_run_s": jax_t, "jax_updates_per_s": jax_rate, "numpy_run_s": np_t,
             "numpy_points": numpy_points, "numpy_updates_per_s": np_rate,
             "ratio": jax_rate / np_rate}
@@ -174,35 +179,42 @@ def numpy_gp_pg_seconds_per_update(cfg, prior, num_updates, rng) -> float:
 
 
 def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "paper") -> dict:
-    keys = reproduce.seed_keys(range(seeds))
-    out: dict = {"seeds": seeds, "methods": {}}
+    """The hyperparameter fit and each method's whole run, compiled as `gpguided reproduce`
+    compiles them (`reproduce.per_seed_program` over the seed mesh), timed apart from compilation."""
+    mesh = reproduce.make_mesh(None, seeds)
+    keys = reproduce.seed_keys(reproduce.pad_seeds(range(seeds), mesh.devices.size))
+    keys = reproduce._shard(keys, mesh)
+    out: dict = {"seeds": seeds, "devices": [str(d) for d in mesh.devices.flat],
+                 "seed_loop": reproduce.resolve_seed_loop("auto", mesh), "methods": {}}
     cfg_gp = config_lib.preset(preset, method="gp_pg")
-    fit = jax.jit(jax.vmap(train_lib.make_train(cfg_gp).fit_kernel_for_seed))
-    t0 = time.perf_counter()
-    compiled_fit = fit.lower(keys).compile()
-    fit_compile = time.perf_counter() - t0
-    fit_t = _stats(_timed(lambda: compiled_fit(keys), repeats))
-    priors = compiled_fit(keys)
+
+    def compiled_fit(cfg):
+        fit = reproduce.per_seed_program(train_lib.make_train(cfg).fit_kernel_for_seed, mesh)
+        t0 = time.perf_counter()
+        compiled = fit.lower(keys).compile()
+        return compiled, time.perf_counter() - t0
+
+    fit, fit_compile = compiled_fit(cfg_gp)
+    fit_t = _stats(_timed(lambda: fit(keys), repeats))
+    priors = fit(keys)
     out["hyperfit"] = {"compile_s": fit_compile, "run_s": fit_t,
                        "optimizer": cfg_gp.hyperfit_optimizer, "steps": cfg_gp.hyperfit_steps}
     # the other optimiser, for comparison (not used by the run)
     other = {"adam": ("lbfgs", 15), "lbfgs": ("adam", 100)}[cfg_gp.hyperfit_optimizer]
-    cfg_alt = cfg_gp.replace(hyperfit_optimizer=other[0], hyperfit_steps=other[1])
-    fit_alt = jax.jit(jax.vmap(train_lib.make_train(cfg_alt).fit_kernel_for_seed))
-    t0 = time.perf_counter()
-    compiled_alt = fit_alt.lower(keys).compile()
+    alt, alt_compile = compiled_fit(cfg_gp.replace(hyperfit_optimizer=other[0],
+                                                   hyperfit_steps=other[1]))
     out["hyperfit_alternative"] = {
-        "compile_s": time.perf_counter() - t0,
-        "run_s": _stats(_timed(lambda: compiled_alt(keys), repeats)),
+        "compile_s": alt_compile, "run_s": _stats(_timed(lambda: alt(keys), repeats)),
         "optimizer": other[0], "steps": other[1]}
+
     def one(method):
         cfg = config_lib.preset(preset, method=method)
         train = train_lib.make_train(cfg)
         if cfg.uses_gp:
-            state = jax.jit(jax.vmap(lambda k, p: train.init(k, cfg, p)))(keys, priors)
+            state = reproduce.per_seed_program(lambda k, p: train.init(k, cfg, p), mesh)(keys, priors)
         else:
-            state = jax.jit(jax.vmap(train.init))(keys)
-        run = jax.jit(jax.vmap(lambda s: train.run_chunk(s, cfg, cfg.num_updates)))
+            state = reproduce.per_seed_program(lambda k: train.init(k, cfg), mesh)(keys)
+        run = reproduce.per_seed_program(lambda s: train.run_chunk(s, cfg, cfg.num_updates), mesh)
         t0 = time.perf_counter()
         compiled = run.lower(state).compile()
         compile_s = time.perf_counter() - t0
@@ -212,7 +224,7 @@ def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "pap
 
     for method in config_lib.METHODS:
         out["methods"][method] = one(method)
-    prior0 = jax.tree_util.tree_map(lambda x: np.asarray(x)[0], priors)
+    prior0 = jax.tree_util.tree_map(lambda x: np.asarray(x)[0], jax.device_get(priors))
     per_update = numpy_gp_pg_seconds_per_update(cfg_gp, prior0, numpy_updates,
                                                  np.random.default_rng(0))
     numpy_run = per_update * cfg_gp.num_updates * seeds

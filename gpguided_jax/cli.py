@@ -43,6 +43,24 @@ def _set_compile_cache(path: str | None) -> None:
         jax.config.update("jax_compilation_cache_dir", path)
 
 
+def available_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def _set_cpu_devices(count: int | None) -> None:
+    """One JAX CPU device per core (before JAX starts its backends), so that the seeds' shards run
+    in parallel: XLA runs one CPU device's program largely on one core. Left alone when XLA_FLAGS
+    already sets the host device count. Accelerators are unaffected."""
+    if "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
+        return
+    import jax
+
+    jax.config.update("jax_num_cpu_devices", int(count or available_cores()))
+
+
 def _set_precision(dtype: str) -> None:
     """float64 runs need JAX's 64-bit mode; this process is ours, so switch it as asked."""
     import gpguided_jax
@@ -120,6 +138,7 @@ def _start_processes(args) -> None:
 
 
 def _cmd_reproduce(args) -> int:
+    _set_cpu_devices(args.cpu_devices)
     _start_processes(args)
     _set_precision(args.dtype)
     _set_compile_cache(args.compile_cache)
@@ -135,6 +154,7 @@ def _cmd_reproduce(args) -> int:
         chunk_size=args.chunk_size,
         num_devices=args.devices,
         max_chunks=args.max_chunks,
+        seed_loop=args.seed_loop,
     )
     if not out["complete"]:
         print(f"stopped early (--max-chunks); run the same command again to resume from {args.out}")
@@ -165,6 +185,7 @@ def _parse_overrides(items: list[str] | None) -> dict:
 
 
 def _cmd_bench(args) -> int:
+    _set_cpu_devices(None)
     _set_precision("float64")
     import json
 
@@ -241,6 +262,13 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--chunk-size", type=positive_int, default=50, help="updates per compiled chunk")
     rep.add_argument("--devices", type=positive_int, default=None,
                      help="use at most this many devices")
+    rep.add_argument("--cpu-devices", type=positive_int, default=None,
+                     help="JAX CPU devices to create (default: one per available core; ignored "
+                     "when XLA_FLAGS sets xla_force_host_platform_device_count)")
+    rep.add_argument("--seed-loop", default="auto", choices=["auto", "vmap", "map"],
+                     help="how a device runs its seeds: one batch (vmap) or one after another "
+                     "(map); auto: map on CPUs (faster there, and bit-for-bit independent of "
+                     "batch and device count), vmap on accelerators")
     rep.add_argument("--compile-cache", default=DEFAULT_COMPILE_CACHE, metavar="DIR",
                      help="JAX's persistent compilation cache, so that a repeated run does not "
                      "compile again (default %(default)s; 'none' turns it off)")

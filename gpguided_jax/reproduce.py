@@ -35,7 +35,7 @@ from typing import Callable, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh
+from jax.sharding import Mesh, PartitionSpec
 
 from gpguided_jax import config as config_lib
 from gpguided_jax import distributed, pendulum
@@ -116,12 +116,62 @@ def seed_keys(seeds: Sequence[int]) -> jax.Array:
     return jnp.stack([jax.random.PRNGKey(int(s)) for s in seeds])
 
 
-def make_mesh(num_devices: int | None = None) -> Mesh:
+def make_mesh(num_devices: int | None = None, num_seeds: int | None = None) -> Mesh:
+    """A one-axis mesh ('seeds') over at most `num_devices` devices (default: all).
+
+    Given `num_seeds` (one process), no more devices than the seeds need: the seeds per device,
+    ceil(seeds / devices), stay the same and the padding (`pad_seeds`) is as small as possible
+    (100 seeds on 64 devices: 50 devices with 2 seeds each rather than 64 with 28 padded seeds).
+    """
     devices = jax.devices()
     n = len(devices) if num_devices is None else min(int(num_devices), len(devices))
     if n < 1:
         raise ValueError(f"--devices must be >= 1, got {num_devices}")
+    if num_seeds is not None and distributed.process_count() == 1:
+        per_device = -(-int(num_seeds) // n)
+        n = max(1, -(-int(num_seeds) // per_device))
     return Mesh(np.array(devices[:n]), ("seeds",))
+
+
+SEED_LOOPS = ("auto", "vmap", "map")
+
+
+def resolve_seed_loop(seed_loop: str, mesh: Mesh) -> str:
+    """'auto': 'map' on CPU devices, 'vmap' on accelerators."""
+    if seed_loop not in SEED_LOOPS:
+        raise ValueError(f"seed_loop must be one of {SEED_LOOPS}, got {seed_loop!r}")
+    if seed_loop == "auto":
+        return "map" if mesh.devices.flat[0].platform == "cpu" else "vmap"
+    return seed_loop
+
+
+def per_seed_program(fn: Callable, mesh: Mesh, seed_loop: str = "auto", donate: bool = False):
+    """`fn` (one seed's arguments -> one seed's outputs) as one compiled program over all seeds.
+
+    The leading axis of every argument and output is the seed axis, split over the mesh with
+    `shard_map`: each device runs its own seeds with no communication between devices (a `jit`
+    of a `vmap` over sharded inputs would partition the batch-wide `any` of the GP update into an
+    all-reduce at every GP step). On each device the seeds run either as one batch (`vmap`: what
+    an accelerator needs) or one after another (`lax.map`). On a CPU the second is faster for the
+    GP methods (the GP update is a sequential scan of O(M^2) steps: batching seeds adds no
+    parallelism, and a batch runs the insertion branch whenever any of its seeds needs it) and
+    makes every seed's result independent of its batch-mates and of the device count, bit for bit.
+
+    Args:
+      fn: per-seed function of positional array arguments (pytrees allowed).
+      mesh: the mesh from `make_mesh`.
+      seed_loop: 'auto' (see `resolve_seed_loop`), 'vmap' or 'map'.
+      donate: donate the first argument's buffers (a state that the program replaces).
+    """
+    loop = resolve_seed_loop(seed_loop, mesh)
+    if loop == "map":
+        def local(*args):
+            return jax.lax.map(lambda a: fn(*a), args)
+    else:
+        local = jax.vmap(fn)
+    spec = PartitionSpec(mesh.axis_names[0])
+    program = jax.shard_map(local, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
+    return jax.jit(program, donate_argnums=(0,) if donate else ())
 
 
 def pad_seeds(seeds: Sequence[int], num_devices: int) -> list[int]:
@@ -146,7 +196,8 @@ def _digest(*parts) -> str:
 # ------------------------------------------------------------------------------------------------
 
 
-def fit_priors(cfg: config_lib.TrainConfig, seeds, out_dir, mesh, progress) -> train_lib.GPPrior:
+def fit_priors(cfg: config_lib.TrainConfig, seeds, out_dir, mesh, progress,
+               seed_loop: str = "auto") -> train_lib.GPPrior:
     """Loads `kernels.npz` if it was fitted for these seeds and this config, else fits and saves.
 
     The fit depends only on the seed and the initial policy's data (not on the method), so every
@@ -154,14 +205,15 @@ def fit_priors(cfg: config_lib.TrainConfig, seeds, out_dir, mesh, progress) -> t
     """
     path = os.path.join(out_dir, "kernels.npz")
     fit_cfg = {k: v for k, v in cfg.to_json_dict().items() if k != "method"}
-    digest = _digest(CHECKPOINT_VERSION, fit_cfg, list(map(int, seeds)))
+    loop = resolve_seed_loop(seed_loop, mesh)
+    digest = _digest(CHECKPOINT_VERSION, fit_cfg, list(map(int, seeds)), loop)
     fields = kernels_lib.KernelParams._fields
     saved = _read_npz(path, progress)
     if saved is not None and str(saved.get("digest", "")) == digest:
         return train_lib.GPPrior(kernels_lib.KernelParams(*(saved[k] for k in fields)),
                                  saved["prior_mean"])
     t0 = time.perf_counter()
-    fit = jax.jit(jax.vmap(train_lib.make_train(cfg).fit_kernel_for_seed))
+    fit = per_seed_program(train_lib.make_train(cfg).fit_kernel_for_seed, mesh, loop)
     fitted = distributed.gather(fit(_shard(seed_keys(pad_seeds(seeds, mesh.devices.size)), mesh)))
     prior = jax.tree_util.tree_map(lambda x: np.asarray(x)[: len(seeds)], fitted)
     if distributed.is_main():
@@ -262,6 +314,7 @@ def run_method(
     kernels=None,
     max_chunks: int | None = None,
     progress: Callable[[str], None] = _log,
+    seed_loop: str = "auto",
 ):
     """Runs one method for all seeds, a compiled chunk of updates at a time, resuming from
     `out_dir/checkpoint_<method>.npz` when present.
@@ -274,6 +327,7 @@ def run_method(
       mesh: device mesh with axis 'seeds' (default: all devices).
       kernels: optional fitted `train.GPPrior` with a leading seed axis (skips the hyperfit).
       max_chunks: stop after this many chunks in this call (to test resumption); None: run to the end.
+      seed_loop: how each device runs its seeds, 'auto', 'vmap' or 'map' (`per_seed_program`).
 
     Returns:
       (records, state): dict field -> (seeds, updates_done) records, and the final `TrainState`.
@@ -289,20 +343,22 @@ def run_method(
     if kernels is not None and pad:
         kernels = jax.tree_util.tree_map(lambda x: np.concatenate([x, x[-pad:]]), kernels)
 
-    init = jax.jit(jax.vmap(lambda k, kern: train.init(k, cfg, kern)) if kernels is not None
-                   else jax.vmap(lambda k: train.init(k, cfg)))
+    loop = resolve_seed_loop(seed_loop, mesh)
+    init = per_seed_program((lambda k, kern: train.init(k, cfg, kern)) if kernels is not None
+                            else (lambda k: train.init(k, cfg)), mesh, loop)
     chunk_size = min(chunk_size, cfg.num_updates)
     n_chunks = -(-cfg.num_updates // chunk_size)
     compiled = {}
 
     def chunk_fn(n):
         if n not in compiled:
-            compiled[n] = jax.jit(jax.vmap(lambda s: train.run_chunk(s, cfg, n)), donate_argnums=0)
+            compiled[n] = per_seed_program(lambda s: train.run_chunk(s, cfg, n), mesh, loop,
+                                           donate=True)
         return compiled[n]
 
     ckpt = checkpoint_path(out_dir, cfg.method)
     digest = _digest(CHECKPOINT_VERSION, cfg.to_json_dict(), padded, chunk_size,
-                     [str(d) for d in mesh.devices.flat])
+                     [str(d) for d in mesh.devices.flat], loop)
     args = (keys,) if kernels is None else (keys, _shard(kernels, mesh))
     template = jax.eval_shape(init, *args)
     loaded = _load_checkpoint(ckpt, template, digest, mesh, progress)
@@ -564,6 +620,7 @@ def reproduce(
     max_chunks: int | None = None,
     overrides: dict | None = None,
     progress: Callable[[str], None] = _log,
+    seed_loop: str = "auto",
 ) -> dict:
     """Runs every method for every seed and writes results.npz, config.json, summary.csv,
     comparisons.csv and Fig. 5 to `out_dir`.
@@ -579,23 +636,25 @@ def reproduce(
     if not main:  # one voice: process 0 reports progress and writes the results
         progress = _silent
     os.makedirs(out_dir, exist_ok=True)
-    mesh = make_mesh(num_devices)
+    mesh = make_mesh(num_devices, len(seeds))
+    loop = resolve_seed_loop(seed_loop, mesh)
     cfgs = {m: config_lib.preset(preset, method=m, dtype=dtype, **(overrides or {})) for m in methods}
     if main:
         atomic_write_text(os.path.join(out_dir, "config.json"), json.dumps(
             {"preset": preset, "seeds": seeds, "chunk_size": chunk_size, "dtype": dtype,
              "processes": distributed.process_count(),
-             "devices": [str(d) for d in mesh.devices.flat],
+             "devices": [str(d) for d in mesh.devices.flat], "seed_loop": loop,
              "methods": {m: c.to_json_dict() for m, c in cfgs.items()}}, indent=2))
 
     gp_methods = [m for m in methods if cfgs[m].uses_gp]
-    priors = fit_priors(cfgs[gp_methods[0]], seeds, out_dir, mesh, progress) if gp_methods else None
+    priors = (fit_priors(cfgs[gp_methods[0]], seeds, out_dir, mesh, progress, loop)
+              if gp_methods else None)
 
     records = {}
     for m in methods:
         rec, _ = run_method(cfgs[m], seeds, out_dir, chunk_size=chunk_size, mesh=mesh,
                             kernels=priors if cfgs[m].uses_gp else None,
-                            max_chunks=max_chunks, progress=progress)
+                            max_chunks=max_chunks, progress=progress, seed_loop=loop)
         if rec["mean_reward"].shape[1] < cfgs[m].num_updates:
             return {"complete": False}
         records[m] = rec
