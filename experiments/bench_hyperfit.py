@@ -5,8 +5,10 @@ random 500-pair subset as in training).
 For each seed: the exact negative log marginal likelihood (NLML) per pair of the fitted
 hyperparameters on the fitting subset and on all 2000 pairs (the quantity the fit stands for),
 and the wall time of each fit for all seeds as one vmapped program (compile and run, median of
---repeats). The tolerance stated in the README: L-BFGS's NLML on all pairs is never worse than
-Adam's by more than 0.01 nats per pair on any seed. Prints JSON (--out also writes it).
+--repeats). The tolerance stated in the README: a faster fit's NLML on all pairs is never worse
+than the default's (Adam, 100 steps, 500 pairs) by more than 0.01 nats per pair on any seed.
+Besides L-BFGS, the two cheaper Adam fits that would meet the 3 s target are measured against
+it: 100 steps on 300 pairs, and 40 steps on 500 pairs. Prints JSON (--out also writes it).
 
 Usage:
   python experiments/bench_hyperfit.py --seeds 10 --out docs/results/hyperfit.json
@@ -50,11 +52,17 @@ def main(argv=None) -> int:
         idx = jax.random.choice(key_subset, xs.shape[0], (cfg.hyperfit_subset,), replace=False)
         return xs, ys, xs[idx], ys[idx]
 
-    xs, ys, xsub, ysub = jax.jit(jax.vmap(data))(keys)
-    out = {"seeds": args.seeds, "pairs": int(xs.shape[1]), "subset": int(xsub.shape[1]),
+    xs, ys, out_xsub, out_ysub = jax.jit(jax.vmap(data))(keys)
+    out = {"seeds": args.seeds, "pairs": int(xs.shape[1]), "subset": int(out_xsub.shape[1]),
            "tolerance_nats_per_pair": TOLERANCE, "fits": {}}
-    for name, kw in (("lbfgs", dict(optimizer="lbfgs", num_steps=15)),
-                     ("adam", dict(optimizer="adam", num_steps=100))):
+    for name, kw, n in (("lbfgs", dict(optimizer="lbfgs", num_steps=15), None),
+                        ("adam", dict(optimizer="adam", num_steps=100), None),
+                        ("adam_300_pairs", dict(optimizer="adam", num_steps=100), 300),
+                        ("adam_40_steps", dict(optimizer="adam", num_steps=40), None)):
+        if n is not None:  # the first n pairs of the same random subset
+            xsub, ysub = out_xsub[:, :n], out_ysub[:, :n]
+        else:
+            xsub, ysub = out_xsub, out_ysub
         fit = jax.jit(jax.vmap(lambda x, y, kw=kw: hyperfit.fit(x, y, **kw).params))
         t0 = time.perf_counter()
         compiled = fit.lower(xsub, ysub).compile()
@@ -66,15 +74,19 @@ def main(argv=None) -> int:
             times.append(time.perf_counter() - t0)
         nl = jax.vmap(hyperfit.negative_log_marginal_likelihood)
         out["fits"][name] = {
+            "pairs": int(xsub.shape[1]), **kw,
             "compile_s": compile_s, "run_s_median": statistics.median(times),
             "nlml_per_pair_subset": (np.asarray(nl(params, xsub, ysub)) / xsub.shape[1]).tolist(),
             "nlml_per_pair_all": (np.asarray(nl(params, xs, ys)) / xs.shape[1]).tolist(),
         }
-    diff = (np.asarray(out["fits"]["lbfgs"]["nlml_per_pair_all"])
-            - np.asarray(out["fits"]["adam"]["nlml_per_pair_all"]))
-    out["lbfgs_minus_adam_all"] = {"mean": float(diff.mean()), "max": float(diff.max()),
-                                   "seeds_better": int(np.sum(diff < 0))}
-    out["within_tolerance"] = bool(diff.max() <= TOLERANCE)
+    base = np.asarray(out["fits"]["adam"]["nlml_per_pair_all"])
+    for name in ("lbfgs", "adam_300_pairs", "adam_40_steps"):
+        diff = np.asarray(out["fits"][name]["nlml_per_pair_all"]) - base
+        out["fits"][name]["minus_default_all"] = {
+            "mean": float(diff.mean()), "max": float(diff.max()),
+            "seeds_better": int(np.sum(diff < 0)), "within_tolerance": bool(diff.max() <= TOLERANCE)}
+    out["lbfgs_minus_adam_all"] = out["fits"]["lbfgs"]["minus_default_all"]
+    out["within_tolerance"] = out["lbfgs_minus_adam_all"]["within_tolerance"]
     text = json.dumps(out, indent=2)
     if args.out:
         reproduce.atomic_write_text(args.out, text)

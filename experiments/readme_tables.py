@@ -148,24 +148,24 @@ def bench_table() -> str:
     return "\n".join(lines)
 
 
-SCALING_RUNS = (("scaling", "CPU default"), ("scaling_vmap", "one batch"))
+SCALING_RUNS = ("scaling", "scaling_vmap")  # the CPU default; one vmapped batch on one device
 
 
 def scaling_table() -> str:
     """One row per (run, seeds): the CPU default (`--seed-loop map`, one device per core) and the
     one-batch path an accelerator runs (`vmap`, one device), whose memory gives the 80 GB estimate."""
     runs = []
-    for name, what in SCALING_RUNS:
+    for name in SCALING_RUNS:
         path = os.path.join(RESULTS, name, "scaling.json")
         if os.path.exists(path):
             with open(path) as f:
-                runs.append((name, what, json.load(f)))
-    methods = list(runs[0][2]["results"][0]["methods"])
+                runs.append((name, json.load(f)))
+    methods = list(runs[0][1]["results"][0]["methods"])
     lines = ["| seed loop | seeds | whole paper run [s] | "
              + " | ".join(f"{m} seeds·updates/s" for m in methods)
              + " | peak RSS [GiB] | XLA memory, largest program [MiB] | updates timed |",
              "|---|---|---|" + "---|" * len(methods) + "---|---|---|"]
-    for _, what, sc in runs:
+    for _, sc in runs:
         for r in sc["results"]:
             timed = min(m.get("updates_timed", 400) for m in r["methods"].values())
             loop = f"{r.get('seed_loop', 'vmap')}, {r.get('devices', 1)} device(s)"
@@ -173,13 +173,12 @@ def scaling_table() -> str:
                          + " | ".join(f"{r['methods'][m]['seed_updates_per_s']:.0f}" for m in methods)
                          + f" | {r['peak_rss_bytes'] / 2**30:.2f} | {r['device_bytes_max'] / 2**20:.0f} | "
                          + ("all 400" if timed >= 400 else f"{timed} (extrapolated)") + " |")
-    batch = next(sc for name, _, sc in runs if name == "scaling_vmap") if any(
-        name == "scaling_vmap" for name, _, _ in runs) else runs[0][2]
+    batch = dict(runs).get("scaling_vmap", runs[0][1])
     lines.append("")
     lines.append(f"Device memory per seed when the seeds run as one batch (slope of XLA's memory "
                  f"analysis, vmap): {batch['device_bytes_per_seed'] / 2**20:.2f} MiB, so about "
                  f"{batch['seeds_in_80_GB']:,} seeds fit in 80 GB (an estimate; no GPU was measured). "
-                 + _source(*(f"{name}/scaling.json" for name, _, _ in runs)))
+                 + _source(*(f"{name}/scaling.json" for name, _ in runs)))
     return "\n".join(lines)
 
 

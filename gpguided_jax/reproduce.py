@@ -128,9 +128,16 @@ def make_mesh(num_devices: int | None = None, num_seeds: int | None = None) -> M
     if n < 1:
         raise ValueError(f"--devices must be >= 1, got {num_devices}")
     if num_seeds is not None and distributed.process_count() == 1:
-        per_device = -(-int(num_seeds) // n)
-        n = max(1, -(-int(num_seeds) // per_device))
+        n = devices_for_seeds(num_seeds, n)
     return Mesh(np.array(devices[:n]), ("seeds",))
+
+
+def devices_for_seeds(num_seeds: int, available: int) -> int:
+    """The fewest of `available` devices that keep ceil(seeds / available) seeds per device."""
+    if num_seeds < 1 or available < 1:
+        raise ValueError(f"need at least one seed and one device, got {num_seeds} and {available}")
+    per_device = -(-int(num_seeds) // int(available))
+    return -(-int(num_seeds) // per_device)
 
 
 SEED_LOOPS = ("auto", "vmap", "map")

@@ -190,6 +190,38 @@ def test_two_host_devices_equal_one(tmp_path):
         np.testing.assert_allclose(batched[k], two[k], rtol=1e-4, atol=1e-9)
 
 
+def test_devices_for_seeds_keeps_the_load_and_minimises_padding():
+    from gpguided_jax import reproduce
+
+    # (seeds, available devices) -> devices used: ceil(seeds / available) seeds on each
+    for seeds, available, used in ((100, 64, 50), (10, 2, 2), (11, 2, 2), (1, 2, 1), (3, 2, 2),
+                                   (5, 4, 3), (7, 1, 1)):
+        got = reproduce.devices_for_seeds(seeds, available)
+        assert got == used, (seeds, available, got)
+        assert -(-seeds // got) == -(-seeds // available)  # the same seeds per device
+        assert got * -(-seeds // got) - seeds < -(-seeds // got)  # less than one device's padding
+    with pytest.raises(ValueError):
+        reproduce.devices_for_seeds(0, 2)
+
+
+def test_per_seed_program_map_equals_one_seed_alone():
+    """The CPU default runs each seed's own program: a batch of 3 gives each seed exactly what it
+    gets alone (jit of the unbatched function)."""
+    from gpguided_jax import reproduce
+
+    cfg = C.preset("tiny", method="guided_variance")
+    train = T.make_train(cfg)
+    mesh = reproduce.make_mesh(1)
+    keys = reproduce.seed_keys([3, 4, 5])
+    assert reproduce.resolve_seed_loop("auto", mesh) == "map"
+    batch = reproduce.per_seed_program(lambda k: train(k)[1].mean_reward, mesh, "map")(keys)
+    alone = jax.jit(lambda k: train(k)[1].mean_reward)
+    for i in range(3):
+        np.testing.assert_array_equal(np.asarray(batch)[i], np.asarray(alone(keys[i])))
+    with pytest.raises(ValueError, match="seed_loop"):
+        reproduce.resolve_seed_loop("pmap", mesh)
+
+
 def test_learnable_sigma_is_clipped_to_its_bounds():
     cfg = C.preset("tiny", method="reinforce", learning_rate=1.0, min_std=0.7, max_std=0.8)
     state, rec = jax.jit(T.make_train(cfg))(jax.random.PRNGKey(5))
