@@ -24,7 +24,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
     """Connects this process to the others (before any other JAX call). On CPUs, the
-    cross-process collectives (the GP update's batch-wide `any`) run over gloo."""
+    cross-process collectives (gathering results, agreeing on a checkpoint; the compiled training
+    loop itself needs none, `reproduce.per_seed_program`) run over gloo."""
     if not 0 <= process_id < num_processes:
         raise ValueError(f"process id {process_id} must be in [0, {num_processes})")
     try:
