@@ -27,3 +27,10 @@ def test_bench_env_prints_json():
     out = _run(["experiments/bench_env.py", "--steps", "20", "--repeats", "2", "--batches", "1", "4"])
     assert [r["episodes"] for r in out["results"]] == [1, 4]
     assert all(r["steps_per_second"] > 0 for r in out["results"])
+
+
+def test_bench_seed_loop_prints_json():
+    out = _run(["experiments/bench_seed_loop.py", "--seeds", "3", "--points", "60", "--repeats", "1"])
+    assert out["vmap"]["run_s"] > 0 and out["map"]["run_s"] > 0
+    # a batch runs the insertion branch at least as often as any one of its seeds needs it
+    assert 0 < out["joins_fraction_one_seed"] <= out["any_seed_joins_fraction"] <= 1

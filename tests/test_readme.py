@@ -42,3 +42,43 @@ def test_fig5_numbers_equal_the_summary_file_independently():
         for key, shown in zip(keys, numbers):
             digits = 0 if key == "updates_to_90pct" else 3
             assert shown == round(float(summary[method][key]), digits), (method, key, shown)
+
+
+def test_benchmark_prose_quotes_the_result_files():
+    """The figures the benchmark prose repeats (outside the generated tables) equal bench.json
+    and scaling.json at the precision shown."""
+    import json
+
+    text = _readme()
+    with open(os.path.join(ROOT, "docs", "results", "bench.json")) as f:
+        bench = json.load(f)
+    with open(os.path.join(ROOT, "docs", "results", "scaling", "scaling.json")) as f:
+        scaling = {r["seeds"]: r for r in json.load(f)["results"]}
+    pr, t = bench["paper_run"], bench["train"]
+
+    def one(pattern):
+        found = re.findall(pattern, text)
+        assert found, pattern
+        return found
+
+    cold, warm = one(r"Whole paper run: ([\d.]+) s with an empty compile cache, ([\d.]+) s")[0]
+    assert float(cold) == round(pr["cold_s"]["median"], 1)
+    assert float(warm) == round(pr["warm_s"]["median"], 1)
+    ratio = one(r"gp_pg: ([\d.]+)× the per-seed NumPy loop")[0]
+    assert float(ratio) == round(t["numpy_gp_pg"]["ratio_jax_over_numpy"], 1)
+    assert float(one(r"update alone is ([\d.]+)× NumPy")[0]) == round(bench["gp"]["ratio"], 1)
+    fit, alt = one(r"Hyperparameter fit: ([\d.]+) s with the default[^,]*, ([\d.]+) s with L-BFGS")[0]
+    assert float(fit) == round(t["hyperfit"]["run_s"]["median"], 1)
+    assert float(alt) == round(t["hyperfit_alternative"]["run_s"]["median"], 1)
+    big = one(r"300 seeds take ([\d,]+) s\s+instead of")[0]
+    assert int(big.replace(",", "")) == round(scaling[300]["whole_paper_run_s"])
+    assert int(one(r"\((\d+) s, about 1 s per seed\)")[0]) == round(scaling[300]["hyperfit_run_s"])
+    with open(os.path.join(ROOT, "docs", "results", "hyperfit.json")) as f:
+        fits = json.load(f)["fits"]
+    a300, a40, worst = one(r"100 steps on 300 pairs: ([\d.]+) s; 40 steps on\s+500 pairs: ([\d.]+) s\)"
+                           r"[\s\S]*?\(worst ([\d.]+) for both;")[0]
+    assert float(a300) == round(fits["adam_300_pairs"]["run_s_median"], 1)
+    assert float(a40) == round(fits["adam_40_steps"]["run_s_median"], 1)
+    for name in ("adam_300_pairs", "adam_40_steps"):
+        assert float(worst) == round(fits[name]["minus_default_all"]["max"], 3)
+        assert not fits[name]["minus_default_all"]["within_tolerance"]

@@ -1,0 +1,75 @@
+"""Why a CPU runs its seeds one after another: the sparse GP update on the benchmark stream of
+`gpguided bench` (M = 100, 3000 points per seed, float64), 10 seeds on one device,
+
+* as one vmapped batch and one seed after another (`lax.map`): microseconds per seed and point;
+* how often the insertion branch runs: the fraction of points that join the basis for one seed,
+  and the fraction of steps at which at least one of the batch's seeds has a point that joins
+  (a batch runs the insertion branch then, for every seed).
+
+Prints JSON (--out also writes it).
+
+Usage:
+  python experiments/bench_seed_loop.py --out docs/results/seed_loop.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import gpguided_jax
+from gpguided_jax import bench, kernels, reproduce, sparse_gp
+
+gpguided_jax.enable_x64()
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--points", type=int, default=3000)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    s = bench.GP_SETTINGS
+    hyper = kernels.make_kernel_params(s["lengthscales"], s["signal_variance"], s["noise_variance"])
+    kw = dict(novelty_tol=s["novelty_tol"], age_penalty=s["age_penalty"], age_scale=s["age_scale"])
+    n = args.points
+    streams = [bench._pendulum_stream(n, i) for i in range(args.seeds)]
+    xs = jnp.asarray(np.stack([a for a, _ in streams]))
+    ys = jnp.asarray(np.stack([b for _, b in streams]))
+    ts = jnp.arange(n) // 150
+
+    def one(x, y):
+        return sparse_gp.update_batch(sparse_gp.init(100, 4), x, y, hyper, ts, with_info=True, **kw)
+
+    mesh = reproduce.make_mesh(1)
+    out = {"seeds": args.seeds, "points_per_seed": n, "capacity": 100, "device": str(jax.devices()[0])}
+    for loop in ("vmap", "map"):
+        run = reproduce.per_seed_program(one, mesh, loop)
+        _, info = jax.block_until_ready(run(xs, ys))
+        times = []
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            jax.block_until_ready(run(xs, ys))
+            times.append(time.perf_counter() - t0)
+        t = float(np.median(times))
+        out[loop] = {"run_s": t, "us_per_seed_and_point": 1e6 * t / (n * args.seeds)}
+    added = np.asarray(info.added)  # (seeds, points), the same in both loops
+    out["joins_fraction_one_seed"] = float(added.mean())
+    out["any_seed_joins_fraction"] = float(added.any(axis=0).mean())
+    out["map_speedup"] = out["vmap"]["run_s"] / out["map"]["run_s"]
+    text = json.dumps(out, indent=2)
+    if args.out:
+        reproduce.atomic_write_text(args.out, text + "\n")
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
