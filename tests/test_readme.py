@@ -82,3 +82,12 @@ def test_benchmark_prose_quotes_the_result_files():
     for name in ("adam_300_pairs", "adam_40_steps"):
         assert float(worst) == round(fits[name]["minus_default_all"]["max"], 3)
         assert not fits[name]["minus_default_all"]["within_tolerance"]
+    with open(os.path.join(ROOT, "docs", "results", "seed_loop.json")) as f:
+        loop = json.load(f)
+    batch, alone, any_pct, one_pct = one(
+        r"([\d.]+) µs per seed and point as a\s+batch of 10, ([\d.]+) µs one seed after another"
+        r"[\s\S]*?at (\d+)% of the steps for 10 seeds; a single seed\s+needs it at ([\d.]+)%")[0]
+    assert float(batch) == round(loop["vmap"]["us_per_seed_and_point"], 1)
+    assert float(alone) == round(loop["map"]["us_per_seed_and_point"], 1)
+    assert int(any_pct) == round(100 * loop["any_seed_joins_fraction"])
+    assert float(one_pct) == round(100 * loop["joins_fraction_one_seed"], 1)
