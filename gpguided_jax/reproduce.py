@@ -177,6 +177,9 @@ def per_seed_program(fn: Callable, mesh: Mesh, seed_loop: str = "auto", donate: 
     else:
         local = jax.vmap(fn)
     spec = PartitionSpec(mesh.axis_names[0])
+    # check_vma=False: the per-seed code never communicates, and the GP update's `lax.cond` on an
+    # unbatched predicate (`sparse_gp._any_in_batch`) mixes device-varying and invariant branch
+    # outputs, which the varying-axes type check would refuse.
     program = jax.shard_map(local, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
     return jax.jit(program, donate_argnums=(0,) if donate else ())
 
