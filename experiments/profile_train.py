@@ -39,8 +39,9 @@ import numpy as np
 
 import gpguided_jax
 from gpguided_jax import config as config_lib
-from gpguided_jax import estimators, reproduce, sparse_gp
+from gpguided_jax import distributed, estimators, reproduce, sparse_gp
 from gpguided_jax import train as T
+from gpguided_jax.cli import available_cores
 
 gpguided_jax.enable_x64()
 
@@ -68,7 +69,7 @@ def _programs(seeds: list[int], loop: str):
     mesh = reproduce.make_mesh(None, len(seeds))
     if len(seeds) % mesh.devices.size:
         mesh = reproduce.make_mesh(1)
-    keys = reproduce._shard(reproduce.seed_keys(seeds), mesh)
+    keys = distributed.shard(reproduce.seed_keys(seeds), mesh)
     return (lambda fn: reproduce.per_seed_program(fn, mesh, loop)), keys
 
 
@@ -178,7 +179,7 @@ def main(argv=None) -> int:
     ap.add_argument("--warmup", type=int, default=100)
     ap.add_argument("--dtype", default="float64", choices=["float64", "float32"])
     ap.add_argument("--seed-loop", default="auto", choices=["auto", "vmap", "map"])
-    ap.add_argument("--cpu-devices", type=int, default=len(os.sched_getaffinity(0)),
+    ap.add_argument("--cpu-devices", type=int, default=available_cores(),
                     help="JAX CPU devices (default: one per available core, as `gpguided reproduce`)")
     args = ap.parse_args(argv)
     jax.config.update("jax_num_cpu_devices", args.cpu_devices)

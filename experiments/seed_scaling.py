@@ -29,6 +29,8 @@ import subprocess
 import sys
 import time
 
+from gpguided_jax.cli import available_cores  # light: imports no JAX
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CHUNK = 50
 
@@ -42,14 +44,14 @@ def measure(num_seeds: int, measured_updates: int | None = None, seed_loop: str 
 
     import gpguided_jax
     from gpguided_jax import config as config_lib
-    from gpguided_jax import reproduce
+    from gpguided_jax import distributed, reproduce
     from gpguided_jax import train as train_lib
 
     gpguided_jax.enable_x64()
     mesh = reproduce.make_mesh(None, num_seeds)  # as `gpguided reproduce` runs the seeds
     loop = reproduce.resolve_seed_loop(seed_loop, mesh)
     seeds = reproduce.pad_seeds(range(2000, 2000 + num_seeds), mesh.devices.size)
-    keys = reproduce._shard(reproduce.seed_keys(seeds), mesh)  # not a result: throughput only
+    keys = distributed.shard(reproduce.seed_keys(seeds), mesh)  # not a result: throughput only
     out = {"seeds": num_seeds, "devices": int(mesh.devices.size), "seed_loop": loop, "methods": {}}
     cfg_gp = config_lib.preset("paper", method="gp_pg")
     fit = reproduce.per_seed_program(train_lib.make_train(cfg_gp).fit_kernel_for_seed, mesh, loop)
@@ -138,7 +140,7 @@ def main(argv=None) -> int:
     ap.add_argument("--partial-updates", type=int, default=100)
     ap.add_argument("--seed-loop", default="auto", choices=["auto", "vmap", "map"],
                     help="how each device runs its seeds (as `gpguided reproduce --seed-loop`)")
-    ap.add_argument("--cpu-devices", type=int, default=len(os.sched_getaffinity(0)),
+    ap.add_argument("--cpu-devices", type=int, default=available_cores(),
                     help="JAX CPU devices (default: one per available core, as `gpguided reproduce`)")
     ap.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--updates", type=int, default=None, help=argparse.SUPPRESS)

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpguided_jax import config as config_lib
-from gpguided_jax import gp_reference, kernels, pendulum, reproduce, sparse_gp
+from gpguided_jax import distributed, gp_reference, kernels, pendulum, reproduce, sparse_gp
 from gpguided_jax import train as train_lib
 
 
@@ -96,7 +96,7 @@ def bench_gp(repeats: int, seeds: int = 10, n: int = 3000, capacity: int = 100,
     mesh = reproduce.make_mesh(None, seeds)  # as training runs it: seeds over devices, per device
     if seeds % mesh.devices.size:            # one after another on a CPU (`per_seed_program`)
         mesh = reproduce.make_mesh(1)
-    xs, ys = reproduce._shard((xs, ys), mesh)
+    xs, ys = distributed.shard((xs, ys), mesh)
     run = reproduce.per_seed_program(lambda x, y: sparse_gp.update_batch(
         sparse_gp.init(capacity, 4), x, y, hyper, ts, **kw), mesh)
     t0 = time.perf_counter()
@@ -183,7 +183,7 @@ def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "pap
     compiles them (`reproduce.per_seed_program` over the seed mesh), timed apart from compilation."""
     mesh = reproduce.make_mesh(None, seeds)
     keys = reproduce.seed_keys(reproduce.pad_seeds(range(seeds), mesh.devices.size))
-    keys = reproduce._shard(keys, mesh)
+    keys = distributed.shard(keys, mesh)
     out: dict = {"seeds": seeds, "devices": [str(d) for d in mesh.devices.flat],
                  "seed_loop": reproduce.resolve_seed_loop("auto", mesh), "methods": {}}
     cfg_gp = config_lib.preset(preset, method="gp_pg")
