@@ -670,7 +670,17 @@ def update_batch(
     with_info: bool = False,
     **update_kwargs,
 ):
-    """Takes in N pairs one after the other (`update` under `lax.scan`).
+    """Takes in N pairs one after the other: the result of `update` applied to each in turn.
+
+    Two loops compute it, with the same arithmetic and so the same result bit for bit:
+
+    * one GP (not under `jax.vmap`): `lax.while_loop`s in segments. An inner loop gives the
+      projected update (steps 1 and 3) to consecutive pairs for as long as none is a candidate for
+      insertion; the full update of a candidate runs between two inner loops. No `lax.cond` sits
+      in the per-pair loop, so XLA writes T and Z in place; a `lax.cond` whose branches return the
+      matrices made it copy them at every pair, which cost about as much as the update itself.
+    * under `jax.vmap` (a batch of GPs): `update` under `lax.scan`, whose `lax.cond` skips the
+      full update at a pair where no member of the batch needs it (`update_with_info`).
 
     Args:
       state: the current state.
@@ -680,7 +690,7 @@ def update_batch(
       timestamps: (N,) int or a scalar int used for every pair.
       valid: optional (N,) bool; pairs with False are skipped (padding). Pairs with a non-finite
         input or target are skipped as well.
-      unroll: `lax.scan` unroll factor (static).
+      unroll: `lax.scan` unroll factor of the batched loop (static).
       with_info: also return the stacked `UpdateInfo` of every pair (static).
       **update_kwargs: keyword arguments of `update` (``age_fn`` static, the rest traceable).
 
@@ -689,15 +699,113 @@ def update_batch(
     """
     n = xs.shape[0]
     timestamps = jnp.broadcast_to(jnp.asarray(timestamps, jnp.int32), (n,))
-    valid = jnp.ones((n,), bool) if valid is None else jnp.asarray(valid, bool)
+    valid = jnp.ones((n,), bool) if valid is None else jnp.broadcast_to(jnp.asarray(valid, bool), (n,))
+    age_fn = update_kwargs.pop("age_fn", "exp")
+    if age_fn not in AGE_FUNCTIONS:
+        raise ValueError(f"age_fn must be one of {AGE_FUNCTIONS}, got {age_fn!r}")
+    unknown = set(update_kwargs) - set(_TRACEABLE_DEFAULTS)
+    if unknown:
+        raise TypeError(f"update_batch got unexpected keyword arguments {sorted(unknown)}")
+    params = {k: jnp.asarray(update_kwargs.get(k, v)) for k, v in _TRACEABLE_DEFAULTS.items()}
+    state, infos = _points_loop(age_fn, unroll)(state, xs, ys, hyper, timestamps, valid, params)
+    return (state, infos) if with_info else state
+
+
+_TRACEABLE_DEFAULTS = dict(novelty_tol=0.0, noise_novelty=0.01, collapse_fraction=0.5,
+                           age_penalty=0.0, age_scale=1.0, logit_eps=1e-3)
+
+
+def _scanned_points(state, xs, ys, hyper, timestamps, valid, params, age_fn, unroll):
+    """`update_with_info` under `lax.scan` (the loop for a batch of GPs)."""
 
     def body(carry, inputs):
         x, y, t, ok = inputs
-        new, info = update_with_info(carry, x, y, hyper, t, valid=ok, **update_kwargs)
-        return new, (info if with_info else None)
+        return update_with_info(carry, x, y, hyper, t, valid=ok, age_fn=age_fn, **params)
 
-    state, infos = jax.lax.scan(body, state, (xs, ys, timestamps, valid), unroll=unroll)
-    return (state, infos) if with_info else state
+    return jax.lax.scan(body, state, (xs, ys, timestamps, valid), unroll=unroll)
+
+
+class _Next(NamedTuple):
+    """The pair the segmented loop takes in next, prepared against the current BV set."""
+
+    index: jax.Array
+    x: jax.Array
+    y: jax.Array
+    ok: jax.Array
+    proj: Projection
+    candidate: jax.Array
+
+
+def _segmented_points(state, xs, ys, hyper, timestamps, valid, params, age_fn):
+    """The loop for one GP (see `update_batch`): while-loops of projected updates between the
+    full updates of candidates. The same operations as `update_with_info`, in the same order."""
+    dtype = state.alpha.dtype
+    hyper = _cast_hyper(hyper, dtype)
+    n = xs.shape[0]
+    xs = jnp.asarray(xs, dtype)
+    ys = jnp.asarray(ys, dtype)
+    gamma_min = novelty_threshold(hyper, dtype, params["novelty_tol"], params["noise_novelty"])
+    max_precision = 1.0 / (jnp.asarray(params["collapse_fraction"], dtype) * gamma_min)
+
+    def prepare(st, i) -> _Next:
+        at = jnp.minimum(i, n - 1)
+        x, y = xs[at], ys[at]
+        ok = (i < n) & valid[at] & jnp.all(jnp.isfinite(x)) & jnp.isfinite(y)
+        x = jnp.where(ok, x, jnp.zeros_like(x))
+        y = jnp.where(ok, y, jnp.zeros_like(y))
+        proj = project(st, x, hyper)
+        return _Next(i, x, y, ok, proj, ok & (proj.gamma >= gamma_min))
+
+    def projected_steps(carry):
+        """Projected updates until the next pair is a candidate or the pairs run out."""
+
+        def body(c):
+            st, nxt, infos = c
+            st = _projected_update(st, nxt.proj, nxt.y, hyper.noise_variance, nxt.ok)
+            return st, prepare(st, nxt.index + 1), infos
+
+        return jax.lax.while_loop(lambda c: (c[1].index < n) & ~c[1].candidate, body, carry)
+
+    def full_step(carry):
+        """The full update of the candidate `nxt`, then projected steps up to the next one."""
+        st, nxt, infos = carry
+        projected = _projected_update(st, nxt.proj, nxt.y, hyper.noise_variance, nxt.ok)
+        st, info = _full_update(st, projected, nxt.x, nxt.y, nxt.proj, hyper,
+                                timestamps[nxt.index], nxt.ok, gamma_min, max_precision,
+                                params["age_penalty"], params["age_scale"], age_fn,
+                                params["logit_eps"])
+        infos = jax.tree.map(lambda a, v: a.at[nxt.index].set(v), infos, info)
+        return projected_steps((st, prepare(st, nxt.index + 1), infos))
+
+    infos = UpdateInfo(jnp.zeros((n,), bool), -jnp.ones((n,), jnp.int32),
+                       -jnp.ones((n,), jnp.int32), jnp.zeros((n,), bool))
+    carry = projected_steps((state, prepare(state, jnp.zeros((), jnp.int32)), infos))
+    state, _, infos = jax.lax.while_loop(lambda c: c[1].index < n, full_step, carry)
+    return state, infos
+
+
+_POINTS_LOOPS: dict = {}
+
+
+def _points_loop(age_fn: str, unroll: int):
+    """`update_batch`'s loop for a static `age_fn`: segmented for one GP, scanned under vmap."""
+    key = (age_fn, unroll)
+    if key not in _POINTS_LOOPS:
+
+        @custom_batching.custom_vmap
+        def run(state, xs, ys, hyper, timestamps, valid, params):
+            return _segmented_points(state, xs, ys, hyper, timestamps, valid, params, age_fn)
+
+        @run.def_vmap
+        def _run_vmap(axis_size, in_batched, *args):
+            del axis_size
+            in_axes = tuple(jax.tree.map(lambda b: 0 if b else None, flags) for flags in in_batched)
+            out = jax.vmap(
+                lambda *a: _scanned_points(*a, age_fn=age_fn, unroll=unroll), in_axes=in_axes)(*args)
+            return out, jax.tree.map(lambda _: True, out)
+
+        _POINTS_LOOPS[key] = run
+    return _POINTS_LOOPS[key]
 
 
 # ------------------------------------------------------------------------------------------------

@@ -566,3 +566,60 @@ def test_buffers_keep_their_dtype_and_free_slots_stay_zero(dtype):
     for X in (np.asarray(state.gram_inv_root), np.asarray(state.alpha_cov_root)):
         assert np.all(X[free] == 0) and np.all(X[:, free] == 0)
     assert np.all(np.asarray(state.alpha)[free] == 0)
+
+
+# --- the two loops of update_batch --------------------------------------------------------------
+
+
+def _adversarial_stream(n, seed, dtype):
+    """Pendulum-like inputs with runs of duplicates, near-duplicates, NaN/inf pairs and padding."""
+    rng = np.random.default_rng(seed)
+    xs, ys = _data(n, seed)
+    dup = rng.random(n) < 0.3
+    xs[1:][dup[1:]] = xs[:-1][dup[1:]] + 1e-9 * rng.normal(size=(int(dup[1:].sum()), 4))
+    xs[rng.random(n) < 0.02] = np.nan
+    ys[rng.random(n) < 0.02] = np.inf
+    valid = rng.random(n) > 0.05
+    return jnp.asarray(xs, dtype), jnp.asarray(ys, dtype), jnp.asarray(valid)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+@pytest.mark.parametrize("age_fn, capacity", [("exp", 12), ("logit", 30)])
+def test_segmented_loop_equals_scanned_updates_bit_for_bit(dtype, age_fn, capacity):
+    """One GP takes in a batch through while-loop segments (no per-pair lax.cond), a vmapped batch
+    through `update_with_info` under lax.scan: the same state and info, bit for bit, on a stream
+    that fills the budget, exchanges BVs, and holds duplicates, non-finite and padded pairs."""
+    n = 600
+    xs, ys, valid = _adversarial_stream(n, 3, dtype)
+    ts = jnp.arange(n) // 40
+    kw = dict(novelty_tol=1e-4, age_penalty=5.0, age_scale=0.3, age_fn=age_fn)
+    hyper = _hyper(dtype)
+    state0 = sparse_gp.init(capacity, 4, dtype, prior_mean=0.2)
+    seg = jax.jit(lambda s, x, y: sparse_gp.update_batch(
+        s, x, y, hyper, ts, valid=valid, with_info=True, **kw))(state0, xs, ys)
+
+    def scanned(s, x, y):  # update_with_info pair by pair: the reference loop
+        def body(c, inp):
+            return sparse_gp.update_with_info(c, inp[0], inp[1], hyper, inp[2], valid=inp[3], **kw)
+        return jax.lax.scan(body, s, (x, y, ts, valid))
+
+    ref = jax.jit(scanned)(state0, xs, ys)
+    batched = jax.jit(jax.vmap(lambda s, x, y: sparse_gp.update_batch(
+        s, x, y, hyper, ts, valid=valid, with_info=True, **kw)))(
+        *jax.tree.map(lambda a: jnp.stack([a, a]), (state0, xs, ys)))
+    info = ref[1]
+    assert int(info.added.sum()) > capacity and int((info.deleted_slot >= 0).sum()) > 0
+    for got, want in zip(jax.tree.leaves(seg), jax.tree.leaves(ref)):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    for got, want in zip(jax.tree.leaves(batched), jax.tree.leaves(ref)):  # the vmapped loop
+        np.testing.assert_allclose(np.asarray(got)[1].astype(float), np.asarray(want).astype(float),
+                                   rtol=1e-4 if dtype == jnp.float32 else 1e-9, atol=1e-6)
+
+
+def test_update_batch_refuses_unknown_keywords():
+    with pytest.raises(TypeError, match="novelty"):
+        sparse_gp.update_batch(sparse_gp.init(3, 4), jnp.zeros((2, 4)), jnp.zeros(2), _hyper(), 0,
+                               novelty=1e-3)
+    with pytest.raises(ValueError, match="age_fn"):
+        sparse_gp.update_batch(sparse_gp.init(3, 4), jnp.zeros((2, 4)), jnp.zeros(2), _hyper(), 0,
+                               age_fn="linear")
