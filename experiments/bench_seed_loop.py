@@ -4,7 +4,13 @@
 * as one vmapped batch and one seed after another (`lax.map`): microseconds per seed and point;
 * how often the insertion branch runs: the fraction of points that join the basis for one seed,
   and the fraction of steps at which at least one of the batch's seeds has a point that joins
-  (a batch runs the insertion branch then, for every seed).
+  (a batch runs the insertion branch then, for every seed);
+* one seed after another with the two loops of `sparse_gp.update_batch`: the while-loop segments
+  (`loop="segments"`, what one GP runs) and `update` under `lax.scan` with its per-pair `lax.cond`
+  (`loop="scan"`, what one GP ran before), whose results are the same bit for bit.
+
+The programs are timed in turn (A B C A B C ...), so that their ratios hold when the machine's
+speed drifts.
 
 Prints JSON (--out also writes it).
 
@@ -33,7 +39,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--points", type=int, default=3000)
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     s = bench.GP_SETTINGS
@@ -45,25 +51,35 @@ def main(argv=None) -> int:
     ys = jnp.asarray(np.stack([b for _, b in streams]))
     ts = jnp.arange(n) // 150
 
-    def one(x, y):
-        return sparse_gp.update_batch(sparse_gp.init(100, 4), x, y, hyper, ts, with_info=True, **kw)
+    def one(loop):  # the GP comes in as an argument, as training's carried GP does
+        return lambda gp, x, y: sparse_gp.update_batch(gp, x, y, hyper, ts, with_info=True,
+                                                       loop=loop, **kw)
 
     mesh = reproduce.make_mesh(1)
     out = {"seeds": args.seeds, "points_per_seed": n, "capacity": 100, "device": str(jax.devices()[0])}
-    for loop in ("vmap", "map"):
-        run = reproduce.per_seed_program(one, mesh, loop)
-        _, info = jax.block_until_ready(run(xs, ys))
-        times = []
-        for _ in range(args.repeats):
+    programs = {"vmap": reproduce.per_seed_program(one("auto"), mesh, "vmap"),
+                "map": reproduce.per_seed_program(one("auto"), mesh, "map"),
+                "map_scan_loop": reproduce.per_seed_program(one("scan"), mesh, "map")}
+    gp0 = jax.tree.map(lambda a: jnp.stack([a] * args.seeds), sparse_gp.init(100, 4))
+    results = {k: jax.block_until_ready(run(gp0, xs, ys)) for k, run in programs.items()}
+    times = {k: [] for k in programs}
+    for _ in range(args.repeats):
+        for k, run in programs.items():
             t0 = time.perf_counter()
-            jax.block_until_ready(run(xs, ys))
-            times.append(time.perf_counter() - t0)
-        t = float(np.median(times))
-        out[loop] = {"run_s": t, "us_per_seed_and_point": 1e6 * t / (n * args.seeds)}
-    added = np.asarray(info.added)  # (seeds, points), the same in both loops
+            jax.block_until_ready(run(gp0, xs, ys))
+            times[k].append(time.perf_counter() - t0)
+    for k in programs:
+        t = float(np.median(times[k]))
+        out[k] = {"run_s": t, "us_per_seed_and_point": 1e6 * t / (n * args.seeds)}
+    info = results["map"][1]
+    added = np.asarray(info.added)  # (seeds, points), the same in every loop
     out["joins_fraction_one_seed"] = float(added.mean())
     out["any_seed_joins_fraction"] = float(added.any(axis=0).mean())
     out["map_speedup"] = out["vmap"]["run_s"] / out["map"]["run_s"]
+    out["segments_speedup_over_scan_loop"] = out["map_scan_loop"]["run_s"] / out["map"]["run_s"]
+    out["segments_equal_scan_loop_bitwise"] = all(
+        bool(np.array_equal(np.asarray(a), np.asarray(b)))
+        for a, b in zip(jax.tree.leaves(results["map"]), jax.tree.leaves(results["map_scan_loop"])))
     text = json.dumps(out, indent=2)
     if args.out:
         reproduce.atomic_write_text(args.out, text + "\n")

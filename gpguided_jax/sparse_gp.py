@@ -668,6 +668,7 @@ def update_batch(
     valid=None,
     unroll: int = 1,
     with_info: bool = False,
+    loop: str = "auto",
     **update_kwargs,
 ):
     """Takes in N pairs one after the other: the result of `update` applied to each in turn.
@@ -692,11 +693,16 @@ def update_batch(
         input or target are skipped as well.
       unroll: `lax.scan` unroll factor of the batched loop (static).
       with_info: also return the stacked `UpdateInfo` of every pair (static).
+      loop: ``"auto"`` (segments for one GP, the scanned loop under `jax.vmap`), or ``"segments"``
+        or ``"scan"`` to force one (static; for benchmarks and tests: ``"segments"`` under `vmap`
+        is correct but runs every segment for as long as the batch's longest).
       **update_kwargs: keyword arguments of `update` (``age_fn`` static, the rest traceable).
 
     Returns:
       The state after the N updates (and, with `with_info`, an `UpdateInfo` with (N,) leaves).
     """
+    if loop not in UPDATE_LOOPS:
+        raise ValueError(f"loop must be one of {UPDATE_LOOPS}, got {loop!r}")
     n = xs.shape[0]
     timestamps = jnp.broadcast_to(jnp.asarray(timestamps, jnp.int32), (n,))
     valid = jnp.ones((n,), bool) if valid is None else jnp.broadcast_to(jnp.asarray(valid, bool), (n,))
@@ -707,10 +713,17 @@ def update_batch(
     if unknown:
         raise TypeError(f"update_batch got unexpected keyword arguments {sorted(unknown)}")
     params = {k: jnp.asarray(update_kwargs.get(k, v)) for k, v in _TRACEABLE_DEFAULTS.items()}
-    state, infos = _points_loop(age_fn, unroll)(state, xs, ys, hyper, timestamps, valid, params)
+    args = (state, xs, ys, hyper, timestamps, valid, params)
+    if loop == "scan":
+        state, infos = _scanned_points(*args, age_fn=age_fn, unroll=unroll)
+    elif loop == "segments":
+        state, infos = _segmented_points(*args, age_fn=age_fn, with_info=with_info)
+    else:
+        state, infos = _points_loop(age_fn, unroll, with_info)(*args)
     return (state, infos) if with_info else state
 
 
+UPDATE_LOOPS = ("auto", "segments", "scan")
 _TRACEABLE_DEFAULTS = dict(novelty_tol=0.0, noise_novelty=0.01, collapse_fraction=0.5,
                            age_penalty=0.0, age_scale=1.0, logit_eps=1e-3)
 
@@ -736,9 +749,10 @@ class _Next(NamedTuple):
     candidate: jax.Array
 
 
-def _segmented_points(state, xs, ys, hyper, timestamps, valid, params, age_fn):
+def _segmented_points(state, xs, ys, hyper, timestamps, valid, params, age_fn, with_info=True):
     """The loop for one GP (see `update_batch`): while-loops of projected updates between the
-    full updates of candidates. The same operations as `update_with_info`, in the same order."""
+    full updates of candidates. The same operations as `update_with_info`, in the same order.
+    Without `with_info` the (N,) info arrays are not carried (they cost a copy per segment)."""
     dtype = state.alpha.dtype
     hyper = _cast_hyper(hyper, dtype)
     n = xs.shape[0]
@@ -774,11 +788,12 @@ def _segmented_points(state, xs, ys, hyper, timestamps, valid, params, age_fn):
                                 timestamps[nxt.index], nxt.ok, gamma_min, max_precision,
                                 params["age_penalty"], params["age_scale"], age_fn,
                                 params["logit_eps"])
-        infos = jax.tree.map(lambda a, v: a.at[nxt.index].set(v), infos, info)
+        if with_info:
+            infos = jax.tree.map(lambda a, v: a.at[nxt.index].set(v), infos, info)
         return projected_steps((st, prepare(st, nxt.index + 1), infos))
 
-    infos = UpdateInfo(jnp.zeros((n,), bool), -jnp.ones((n,), jnp.int32),
-                       -jnp.ones((n,), jnp.int32), jnp.zeros((n,), bool))
+    infos = (UpdateInfo(jnp.zeros((n,), bool), -jnp.ones((n,), jnp.int32),
+                        -jnp.ones((n,), jnp.int32), jnp.zeros((n,), bool)) if with_info else None)
     carry = projected_steps((state, prepare(state, jnp.zeros((), jnp.int32)), infos))
     state, _, infos = jax.lax.while_loop(lambda c: c[1].index < n, full_step, carry)
     return state, infos
@@ -787,14 +802,15 @@ def _segmented_points(state, xs, ys, hyper, timestamps, valid, params, age_fn):
 _POINTS_LOOPS: dict = {}
 
 
-def _points_loop(age_fn: str, unroll: int):
-    """`update_batch`'s loop for a static `age_fn`: segmented for one GP, scanned under vmap."""
-    key = (age_fn, unroll)
+def _points_loop(age_fn: str, unroll: int, with_info: bool):
+    """`update_batch`'s loop for static arguments: segmented for one GP, scanned under vmap."""
+    key = (age_fn, unroll, with_info)
     if key not in _POINTS_LOOPS:
 
         @custom_batching.custom_vmap
         def run(state, xs, ys, hyper, timestamps, valid, params):
-            return _segmented_points(state, xs, ys, hyper, timestamps, valid, params, age_fn)
+            return _segmented_points(state, xs, ys, hyper, timestamps, valid, params, age_fn,
+                                     with_info)
 
         @run.def_vmap
         def _run_vmap(axis_size, in_batched, *args):
