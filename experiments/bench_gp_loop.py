@@ -36,6 +36,7 @@ gpguided_jax.enable_x64()
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--preset", default="paper")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--methods", nargs="+", default=["gp_pg", "guided_variance", "guided_direction"])
     ap.add_argument("--out", default=None)
@@ -44,12 +45,12 @@ def main(argv=None) -> int:
     mesh = reproduce.make_mesh(None, args.seeds)
     seeds = reproduce.pad_seeds(range(args.seeds), mesh.devices.size)
     keys = distributed.shard(reproduce.seed_keys(seeds), mesh)
-    fit = train_lib.make_train(config_lib.preset("paper", method="gp_pg")).fit_kernel_for_seed
+    fit = train_lib.make_train(config_lib.preset(args.preset, method="gp_pg")).fit_kernel_for_seed
     priors = reproduce.per_seed_program(fit, mesh)(keys)
     original = sparse_gp.update_batch
 
     def build(method, loop):
-        cfg = config_lib.preset("paper", method=method)
+        cfg = config_lib.preset(args.preset, method=method)
         train = train_lib.make_train(cfg)
         state = reproduce.per_seed_program(lambda k, p: train.init(k, cfg, p), mesh)(keys, priors)
         run = reproduce.per_seed_program(lambda s: train.run_chunk(s, cfg, cfg.num_updates), mesh)
@@ -61,7 +62,7 @@ def main(argv=None) -> int:
         finally:
             sparse_gp.update_batch = original
 
-    out = {"seeds": args.seeds, "devices": int(mesh.devices.size), "preset": "paper", "methods": {}}
+    out = {"seeds": args.seeds, "devices": int(mesh.devices.size), "preset": args.preset, "methods": {}}
     for method in args.methods:
         progs = {loop: build(method, loop) for loop in ("scan", "segments")}
         results = {k: jax.device_get(c(s)) for k, (c, s, _) in progs.items()}

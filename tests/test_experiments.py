@@ -34,3 +34,12 @@ def test_bench_seed_loop_prints_json():
     assert out["vmap"]["run_s"] > 0 and out["map"]["run_s"] > 0
     # a batch runs the insertion branch at least as often as any one of its seeds needs it
     assert 0 < out["joins_fraction_one_seed"] <= out["any_seed_joins_fraction"] <= 1
+    assert out["segments_equal_scan_loop_bitwise"] is True  # the two loops of update_batch
+
+
+def test_bench_gp_loop_compares_the_two_loops_bitwise():
+    out = _run(["experiments/bench_gp_loop.py", "--seeds", "2", "--repeats", "1",
+                "--methods", "gp_pg", "--preset", "tiny"])
+    row = out["methods"]["gp_pg"]
+    assert row["records_and_state_equal_bitwise"] is True
+    assert row["scan"]["run_s_median"] > 0 and row["segments"]["run_s_median"] > 0
