@@ -816,8 +816,11 @@ def _points_loop(age_fn: str, unroll: int, with_info: bool):
         def _run_vmap(axis_size, in_batched, *args):
             del axis_size
             in_axes = tuple(jax.tree.map(lambda b: 0 if b else None, flags) for flags in in_batched)
-            out = jax.vmap(
-                lambda *a: _scanned_points(*a, age_fn=age_fn, unroll=unroll), in_axes=in_axes)(*args)
+            def scanned(*a):
+                state, infos = _scanned_points(*a, age_fn=age_fn, unroll=unroll)
+                return state, (infos if with_info else None)  # the structure of `run`'s output
+
+            out = jax.vmap(scanned, in_axes=in_axes)(*args)
             return out, jax.tree.map(lambda _: True, out)
 
         _POINTS_LOOPS[key] = run
