@@ -135,7 +135,8 @@ def bench_table() -> str:
                  f"{n['extrapolated_run_s']:.1f} s | |")
     lines.append(f"| **gp_pg: JAX over NumPy** | **{n['ratio_jax_over_numpy']:.1f}x** | ≥ 20x |")
     g = b["gp"]
-    lines.append(f"| sparse GP update alone (M = {g['capacity']}, {g['seeds']} seeds, as training runs them): "
+    lines.append(f"| sparse GP update alone (M = {g['capacity']}, {g['seeds']} seeds, as training runs "
+                 "them): "
                  f"JAX / NumPy updates per second | {g['jax_updates_per_s']:,.0f} / "
                  f"{g['numpy_updates_per_s']:,.0f} = {g['ratio']:.1f}x | |")
     e = b["env"]

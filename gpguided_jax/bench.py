@@ -3,7 +3,8 @@
 Sections (each a dict of figures; times in seconds, medians with min and max over `repeats`):
 
 * ``env``: pendulum steps per second, 1 / 10 / 1000 vmapped 2000-step episodes.
-* ``gp``: sparse GP updates per second on a pendulum-like stream (M = 100, 10 seeds, one after another on each device as training runs them)
+* ``gp``: sparse GP updates per second on a pendulum-like stream (M = 100, 10 seeds, as training
+  runs them: one after another on each device)
   against the NumPy reference (`gp_reference.OnlineGP`, one seed at a time), and their ratio.
 * ``hyperfit``: the GP hyperparameter fit of the paper preset for the seeds (compile and run);
   ``hyperfit_alternative``: the same with the other optimiser (Adam 100 steps / L-BFGS 15).
