@@ -91,3 +91,26 @@ def test_benchmark_prose_quotes_the_result_files():
     assert float(alone) == round(loop["map"]["us_per_seed_and_point"], 1)
     assert int(any_pct) == round(100 * loop["any_seed_joins_fraction"])
     assert float(one_pct) == round(100 * loop["joins_fraction_one_seed"], 1)
+
+
+def test_cross_machine_rerun_figures_quote_their_file():
+    """The known-limitations figures of the 2026-12-01 re-run equal its summary file."""
+    import csv
+
+    text = _readme()
+    path = os.path.join(ROOT, "docs", "results", "rerun_2026-12-01", "summary.csv")
+    rows = {r["method"]: r for r in csv.DictReader(open(path))}
+    ref = {r["method"]: r for r in csv.DictReader(open(
+        os.path.join(ROOT, "docs", "results", "paper_float64", "summary.csv")))}
+    gd, gd0 = rows["guided_direction"], ref["guided_direction"]
+    m = re.search(r"final IQM is\s+(-[\d.]+) in both runs, but its mean is (-[\d.]+) instead of (-[\d.]+), "
+                  r"and (\d+) seeds end below the\s+zero-torque policy instead of (\d+)", text)
+    assert m, "re-run bullet not found"
+    iqm, mean, mean0, fail, fail0 = m.groups()
+    assert float(iqm) == round(float(gd["final_iqm"]), 4) == round(float(gd0["final_iqm"]), 4)
+    assert float(mean) == round(float(gd["final_mean"]), 3)
+    assert float(mean0) == round(float(gd0["final_mean"]), 3)
+    assert int(fail) == int(gd["fail_below_zero_torque"]) and int(fail0) == int(gd0["fail_below_zero_torque"])
+    assert rows["reinforce"] == ref["reinforce"]
+    for name in ("gp_pg", "guided_variance"):
+        assert abs(float(rows[name]["final_mean"]) - float(ref[name]["final_mean"])) < 1e-11
