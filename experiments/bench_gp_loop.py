@@ -25,8 +25,8 @@ import jax
 import numpy as np
 
 import gpguided_jax
+from gpguided_jax import bench, distributed, reproduce, sparse_gp
 from gpguided_jax import config as config_lib
-from gpguided_jax import distributed, reproduce, sparse_gp
 from gpguided_jax import train as train_lib
 from gpguided_jax.cli import available_cores
 
@@ -66,14 +66,9 @@ def main(argv=None) -> int:
     for method in args.methods:
         progs = {loop: build(method, loop) for loop in ("scan", "segments")}
         results = {k: jax.device_get(c(s)) for k, (c, s, _) in progs.items()}
-        times = {k: [] for k in progs}
-        for _ in range(args.repeats):
-            for k, (c, s, _) in progs.items():
-                t0 = time.perf_counter()
-                jax.block_until_ready(c(s))
-                times[k].append(time.perf_counter() - t0)
-        same = all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in
-                   zip(jax.tree.leaves(results["scan"]), jax.tree.leaves(results["segments"])))
+        times = bench.timed_in_turn({k: c for k, (c, _, _) in progs.items()},
+                                    {k: (s,) for k, (_, s, _) in progs.items()}, args.repeats)
+        same = bench.trees_equal(results["scan"], results["segments"])
         row = {k: {"compile_s": progs[k][2], "run_s_median": float(np.median(v)), "run_s": v}
                for k, v in times.items()}
         row["speedup_segments_over_scan"] = row["scan"]["run_s_median"] / row["segments"]["run_s_median"]

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
@@ -62,12 +61,7 @@ def main(argv=None) -> int:
                 "map_scan_loop": reproduce.per_seed_program(one("scan"), mesh, "map")}
     gp0 = jax.tree.map(lambda a: jnp.stack([a] * args.seeds), sparse_gp.init(100, 4))
     results = {k: jax.block_until_ready(run(gp0, xs, ys)) for k, run in programs.items()}
-    times = {k: [] for k in programs}
-    for _ in range(args.repeats):
-        for k, run in programs.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(run(gp0, xs, ys))
-            times[k].append(time.perf_counter() - t0)
+    times = bench.timed_in_turn(programs, {k: (gp0, xs, ys) for k in programs}, args.repeats)
     for k in programs:
         t = float(np.median(times[k]))
         out[k] = {"run_s": t, "us_per_seed_and_point": 1e6 * t / (n * args.seeds)}
@@ -77,9 +71,7 @@ def main(argv=None) -> int:
     out["any_seed_joins_fraction"] = float(added.any(axis=0).mean())
     out["map_speedup"] = out["vmap"]["run_s"] / out["map"]["run_s"]
     out["segments_speedup_over_scan_loop"] = out["map_scan_loop"]["run_s"] / out["map"]["run_s"]
-    out["segments_equal_scan_loop_bitwise"] = all(
-        bool(np.array_equal(np.asarray(a), np.asarray(b)))
-        for a, b in zip(jax.tree.leaves(results["map"]), jax.tree.leaves(results["map_scan_loop"])))
+    out["segments_equal_scan_loop_bitwise"] = bench.trees_equal(results["map"], results["map_scan_loop"])
     text = json.dumps(out, indent=2)
     if args.out:
         reproduce.atomic_write_text(args.out, text + "\n")

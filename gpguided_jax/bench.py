@@ -55,6 +55,25 @@ def _timed(fn, repeats):
     return times
 
 
+def timed_in_turn(programs: dict, args: dict, repeats: int) -> dict:
+    """Wall seconds of each program over `repeats` rounds, the programs run in turn (A B A B ...)
+    so that their ratios hold when the machine's speed drifts. `args[name]` is the tuple of
+    arguments of `programs[name]`. Returns {name: [seconds, ...]}."""
+    times = {k: [] for k in programs}
+    for _ in range(repeats):
+        for k, run in programs.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(run(*args[k]))
+            times[k].append(time.perf_counter() - t0)
+    return times
+
+
+def trees_equal(a, b) -> bool:
+    """Whether two pytrees of arrays are equal bit for bit (leaf by leaf)."""
+    return all(bool(np.array_equal(np.asarray(x), np.asarray(y)))
+               for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
 def bench_env(repeats: int, steps: int = 2000, batches=(1, 10, 1000)) -> dict:
     params = pendulum.make_params()
 

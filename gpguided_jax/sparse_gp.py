@@ -77,6 +77,7 @@ False, alpha 0 and zero rows and columns in T and Z. Non-finite x or y (or valid
 state unchanged. Everything is branch-free (`jnp.where`), jit- and vmap-able, O(M^2) per update.
 """
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -799,32 +800,27 @@ def _segmented_points(state, xs, ys, hyper, timestamps, valid, params, age_fn, w
     return state, infos
 
 
-_POINTS_LOOPS: dict = {}
-
-
+@functools.lru_cache(maxsize=None)
 def _points_loop(age_fn: str, unroll: int, with_info: bool):
     """`update_batch`'s loop for static arguments: segmented for one GP, scanned under vmap."""
-    key = (age_fn, unroll, with_info)
-    if key not in _POINTS_LOOPS:
 
-        @custom_batching.custom_vmap
-        def run(state, xs, ys, hyper, timestamps, valid, params):
-            return _segmented_points(state, xs, ys, hyper, timestamps, valid, params, age_fn,
-                                     with_info)
+    @custom_batching.custom_vmap
+    def run(state, xs, ys, hyper, timestamps, valid, params):
+        return _segmented_points(state, xs, ys, hyper, timestamps, valid, params, age_fn, with_info)
 
-        @run.def_vmap
-        def _run_vmap(axis_size, in_batched, *args):
-            del axis_size
-            in_axes = tuple(jax.tree.map(lambda b: 0 if b else None, flags) for flags in in_batched)
-            def scanned(*a):
-                state, infos = _scanned_points(*a, age_fn=age_fn, unroll=unroll)
-                return state, (infos if with_info else None)  # the structure of `run`'s output
+    @run.def_vmap
+    def _run_vmap(axis_size, in_batched, *args):
+        del axis_size
+        in_axes = tuple(jax.tree.map(lambda b: 0 if b else None, flags) for flags in in_batched)
 
-            out = jax.vmap(scanned, in_axes=in_axes)(*args)
-            return out, jax.tree.map(lambda _: True, out)
+        def scanned(*a):
+            state, infos = _scanned_points(*a, age_fn=age_fn, unroll=unroll)
+            return state, (infos if with_info else None)  # the structure of `run`'s output
 
-        _POINTS_LOOPS[key] = run
-    return _POINTS_LOOPS[key]
+        out = jax.vmap(scanned, in_axes=in_axes)(*args)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return run
 
 
 # ------------------------------------------------------------------------------------------------
