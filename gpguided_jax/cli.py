@@ -58,7 +58,14 @@ def _set_cpu_devices(count: int | None) -> None:
         return
     import jax
 
-    jax.config.update("jax_num_cpu_devices", int(count or available_cores()))
+    try:
+        jax.config.update("jax_num_cpu_devices", int(count or available_cores()))
+    except RuntimeError:  # JAX already runs in this process (e.g. `cli.main` from a notebook)
+        if count is not None:
+            raise SystemExit(
+                f"gpguided: error: --cpu-devices {count}: JAX has already started in this process "
+                f"with {len(jax.devices('cpu'))} CPU device(s); run the command in a new process"
+            ) from None
 
 
 def _set_precision(dtype: str) -> None:
@@ -202,14 +209,15 @@ def _cmd_bench(args) -> int:
 
 
 def _cmd_sweep(args) -> int:
-    _set_precision(args.dtype)
-    _set_compile_cache(args.compile_cache)
     from gpguided_jax import sweep
 
     try:
         field = sweep.resolve_param(args.param)
     except ValueError as e:
         raise SystemExit(f"gpguided sweep: error: {e}") from None
+    _set_cpu_devices(args.cpu_devices)
+    _set_precision(args.dtype)
+    _set_compile_cache(args.compile_cache)
     overrides = _parse_overrides(args.set)
     overrides["dtype"] = args.dtype
     if args.num_updates is not None:
@@ -220,6 +228,7 @@ def _cmd_sweep(args) -> int:
         result = sweep.run_sweep(
             field, args.values, method=args.method, preset=args.preset, seeds=seeds,
             overrides=overrides, chunk_size=args.chunk_size, num_devices=args.devices,
+            seed_loop=args.seed_loop,
         )
     except (ValueError, TypeError) as e:
         raise SystemExit(f"gpguided sweep: error: {e}") from None
@@ -228,6 +237,20 @@ def _cmd_sweep(args) -> int:
     for p in paths.values():
         print(f"wrote {p}")
     return 0
+
+
+
+def _add_device_options(parser: argparse.ArgumentParser, what: str) -> None:
+    """--devices, --cpu-devices and --seed-loop (`reproduce.per_seed_program`)."""
+    parser.add_argument("--devices", type=positive_int, default=None,
+                        help="use at most this many devices")
+    parser.add_argument("--cpu-devices", type=positive_int, default=None,
+                        help="JAX CPU devices to create (default: one per available core; ignored "
+                        "when XLA_FLAGS sets xla_force_host_platform_device_count)")
+    parser.add_argument("--seed-loop", default="auto", choices=["auto", "vmap", "map"],
+                        help=f"how a device runs its {what}: one batch (vmap) or one after another "
+                        "(map); auto: map on CPUs (faster there, and bit-for-bit independent of "
+                        "batch and device count), vmap on accelerators")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -260,15 +283,7 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--dtype", default="float64", choices=["float64", "float32"],
                      help="computation dtype of every array (default float64)")
     rep.add_argument("--chunk-size", type=positive_int, default=50, help="updates per compiled chunk")
-    rep.add_argument("--devices", type=positive_int, default=None,
-                     help="use at most this many devices")
-    rep.add_argument("--cpu-devices", type=positive_int, default=None,
-                     help="JAX CPU devices to create (default: one per available core; ignored "
-                     "when XLA_FLAGS sets xla_force_host_platform_device_count)")
-    rep.add_argument("--seed-loop", default="auto", choices=["auto", "vmap", "map"],
-                     help="how a device runs its seeds: one batch (vmap) or one after another "
-                     "(map); auto: map on CPUs (faster there, and bit-for-bit independent of "
-                     "batch and device count), vmap on accelerators")
+    _add_device_options(rep, "seeds")
     rep.add_argument("--compile-cache", default=DEFAULT_COMPILE_CACHE, metavar="DIR",
                      help="JAX's persistent compilation cache, so that a repeated run does not "
                      "compile again (default %(default)s; 'none' turns it off)")
@@ -288,8 +303,8 @@ def build_parser() -> argparse.ArgumentParser:
         "sweep",
         help="sweep one traced config field x seeds as one compiled program",
         description="Trains one method for every (value, seed) pair of a grid over one traced "
-        "TrainConfig field, all runs as one compiled, vmapped program (a chunk of updates at a "
-        "time), then writes results.npz, sweep.csv (final performance: mean reward per step over "
+        "TrainConfig field, all runs as one compiled program (a chunk of updates at a time; on "
+        "a CPU one device per core, each taking its runs one after another), then writes results.npz, sweep.csv (final performance: mean reward per step over "
         "the last 10% of updates, mean and 95% CI over seeds), config.json and "
         "sweep_<field>.png to --out. Static fields (sizes, method, controller, ...) cannot be "
         "swept this way.",
@@ -312,8 +327,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="override num_updates (quick runs)")
     sw.add_argument("--set", nargs="*", metavar="FIELD=VALUE",
                     help="further config overrides, e.g. --set gp_capacity=50 optimizer=adam")
-    sw.add_argument("--devices", type=positive_int, default=None,
-                    help="use at most this many devices")
+    _add_device_options(sw, "runs")
     sw.add_argument("--compile-cache", default=DEFAULT_COMPILE_CACHE, metavar="DIR",
                     help="JAX's persistent compilation cache ('none' turns it off)")
     sw.set_defaults(func=_cmd_sweep)

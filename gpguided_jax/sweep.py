@@ -1,11 +1,14 @@
-"""Sweeps over one traced config field x seeds as one compiled, vmapped program.
+"""Sweeps over one traced config field x seeds as one compiled program.
 
-The grid (values x seeds) is flattened into one batch axis: the configs differ only in traced
-leaves of `TrainConfig`, so `jax.vmap(train.run_chunk)` over the stacked configs is a single
-program (one for init, one for a chunk of updates), whatever the number of values. Static fields
-(sizes, method, controller, ...) fix shapes or the program and cannot be swept this way: they are
-refused with a message naming the field. The `gpguided sweep` command is a thin wrapper over
-`run_sweep`.
+The grid (values x seeds) is flattened into one axis of runs: the configs differ only in traced
+leaves of `TrainConfig`, so the stacked configs are one more argument of a single program (one for
+init, one for a chunk of updates), whatever the number of values. The runs are split over the
+devices and run as `gpguided reproduce` runs its seeds (`reproduce.per_seed_program`): on a CPU one
+device per core, each taking its runs one after another, on an accelerator as one batch. On a
+CPU every run's records are therefore those of the same seed and config run alone, bit for bit.
+Static fields (sizes, method, controller, ...) fix shapes or the program and cannot be swept this
+way: they are refused with a message naming the field. The `gpguided sweep` command is a thin
+wrapper over `run_sweep`.
 
 Output directory layout (`write_sweep`):
   config.json          the base config, the swept field and values, seeds
@@ -136,8 +139,9 @@ def run_sweep(
     chunk_size: int = 50,
     num_devices: int | None = None,
     progress: Callable[[str], None] = _log,
+    seed_loop: str = "auto",
 ) -> SweepResult:
-    """Trains `method` for every (value, seed) pair of the grid as one vmapped program.
+    """Trains `method` for every (value, seed) pair of the grid as one program.
 
     Args:
       param: a traced `TrainConfig` field or alias (lambda, beta, lr).
@@ -147,7 +151,11 @@ def run_sweep(
       seeds: integer seeds; every value is run with the same seeds (same initial data and kernel).
       chunk_size: at most this many updates per compiled call (rounded down to a divisor of
         num_updates, so that the chunk compiles once); progress is reported after each.
-      num_devices: shard the flattened grid over at most this many devices (default: all).
+      num_devices: shard the flattened grid over at most this many devices (default: all; on a
+        CPU one device per core needs `gpguided sweep --cpu-devices` or
+        `jax.config.update("jax_num_cpu_devices", n)` before JAX starts).
+      seed_loop: how each device takes its runs: 'auto' (one after another on a CPU, one batch on
+        an accelerator), 'map' or 'vmap' (`reproduce.per_seed_program`).
 
     Returns:
       `SweepResult`.
@@ -167,6 +175,7 @@ def run_sweep(
 
     t_start = time.perf_counter()
     mesh = reproduce.make_mesh(num_devices)
+    loop = reproduce.resolve_seed_loop(seed_loop, mesh)
     n_dev = mesh.devices.size
     grid = [(i, s) for i in range(len(values)) for s in seeds]  # value-major
     n_real = len(grid)
@@ -175,24 +184,29 @@ def run_sweep(
     keys = reproduce.seed_keys([s for _, s in grid])
     train = train_lib.make_train(base)
 
+    def program(fn, donate=False):
+        return reproduce.per_seed_program(fn, mesh, loop, donate=donate)
+
     progress(f"[sweep {field}] {method} / {preset}: {len(values)} values x {len(seeds)} seeds = "
-             f"{n_real} runs of {base.num_updates} updates, one program on {n_dev} device(s)")
+             f"{n_real} runs of {base.num_updates} updates, one program on {n_dev} device(s) "
+             f"({'one run after another' if loop == 'map' else 'one batch'} per device)")
     t0 = time.perf_counter()
     if base.uses_gp and field not in _HYPERFIT_INPUTS:
-        fit = jax.jit(jax.vmap(lambda k: train.fit_kernel_for_seed(k, base)))
-        kern = fit(reproduce._shard(reproduce.seed_keys(seeds), mesh))
+        fit_seeds = reproduce.pad_seeds(seeds, n_dev)
+        fit = program(lambda k: train.fit_kernel_for_seed(k, base))
+        kern = jax.device_get(fit(reproduce._shard(reproduce.seed_keys(fit_seeds), mesh)))
         idx = np.asarray([seeds.index(s) for _, s in grid])
-        kern = jax.tree_util.tree_map(lambda x: np.asarray(x)[idx], jax.device_get(kern))
-        init = jax.jit(jax.vmap(lambda k, c, kp: train.init(k, c, kp)))
+        kern = jax.tree_util.tree_map(lambda x: np.asarray(x)[idx], kern)
+        init = program(lambda k, c, kp: train.init(k, c, kp))
         state = init(*reproduce._shard((keys, stacked, kern), mesh))
     else:
-        init = jax.jit(jax.vmap(lambda k, c: train.init(k, c)))
+        init = program(lambda k, c: train.init(k, c))
         state = init(*reproduce._shard((keys, stacked), mesh))
     jax.block_until_ready(state)
     progress(f"[sweep {field}] init (hyperparameter fit) {time.perf_counter() - t0:.1f}s")
 
     n = even_chunk_size(base.num_updates, chunk_size)
-    chunk = jax.jit(jax.vmap(lambda s, c: train.run_chunk(s, c, n)), donate_argnums=0)
+    chunk = program(lambda s, c: train.run_chunk(s, c, n), donate=True)
     stacked = reproduce._shard(stacked, mesh)
     records = {k: [] for k in RECORD_FIELDS}
     t0 = time.perf_counter()

@@ -128,3 +128,29 @@ def test_cli_sweep_help(capsys):
         cli.main(["sweep", "--help"])
     assert e.value.code == 0
     assert "--param" in capsys.readouterr().out
+
+
+def test_sweep_runs_equal_the_same_runs_alone(tmp_path):
+    """On a CPU the sweep takes its runs one after another (`reproduce.per_seed_program`, map):
+    every (value, seed) run's records are those of `reproduce.run_method` for that value's config
+    and the same fitted kernels, bit for bit."""
+    import jax
+
+    from gpguided_jax import config as C
+    from gpguided_jax import reproduce
+
+    values, seeds = [0.001, 0.01], [3, 4]
+    result = S.run_sweep("lr", values, method="gp_pg", preset="tiny", seeds=seeds,
+                         overrides={"num_updates": 4}, chunk_size=2, progress=lambda m: None)
+    mesh = reproduce.make_mesh(1)
+    fit = S.train_lib.make_train(C.preset("tiny", method="gp_pg")).fit_kernel_for_seed
+    priors = jax.device_get(reproduce.per_seed_program(fit, mesh)(reproduce.seed_keys(seeds)))
+    for i, v in enumerate(values):
+        cfg = C.preset("tiny", method="gp_pg", num_updates=4, learning_rate=v)
+        (tmp_path / str(i)).mkdir()
+        rec, _ = reproduce.run_method(cfg, seeds, str(tmp_path / str(i)), chunk_size=2, mesh=mesh,
+                                      kernels=priors, progress=lambda m: None)
+        for k in ("mean_reward", "exploration_std", "grad_norm", "num_basis_vectors"):
+            np.testing.assert_array_equal(result.records[k][i], rec[k])
+    # the two values' runs are not the same runs (the check above could not pass by accident)
+    assert not np.array_equal(result.records["grad_norm"][0], result.records["grad_norm"][1])
