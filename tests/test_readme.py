@@ -114,3 +114,27 @@ def test_cross_machine_rerun_figures_quote_their_file():
     assert rows["reinforce"] == ref["reinforce"]
     for name in ("gp_pg", "guided_variance"):
         assert abs(float(rows[name]["final_mean"]) - float(ref[name]["final_mean"])) < 1e-11
+
+
+def _num(text: str) -> float:
+    return float(text.replace("−", "-"))
+
+
+def test_sweep_figures_quote_their_csv_files():
+    """The Sweeps section's β table and λ range equal docs/figures/sweep_*.csv (rounded as shown)."""
+    text = _readme()
+    fig = os.path.join(ROOT, "docs", "figures")
+    beta = list(csv.DictReader(open(os.path.join(fig, "sweep_inverse_temperature.csv"))))
+    rows = re.findall(r"^\| (\d+) \| (−[\d.]+) \| \[(−[\d.]+), (−[\d.]+)\] \|$", text, re.M)
+    assert [int(r[0]) for r in rows] == [int(float(b["inverse_temperature"])) for b in beta]
+    for (_, final, lo, hi), b in zip(rows, beta):
+        assert _num(final) == round(float(b["final_mean"]), 3)
+        assert (_num(lo), _num(hi)) == (round(float(b["ci95_low"]), 3), round(float(b["ci95_high"]), 3))
+    lam = list(csv.DictReader(open(os.path.join(fig, "sweep_age_penalty.csv"))))
+    m = re.search(r"no measurable effect; final (−[\d.]+) to (−[\d.]+) \[(−[\d.]+), (−[\d.]+)\] for\s+"
+                  r"every λ", text)
+    assert m, "λ sweep sentence not found"
+    finals = sorted(round(float(r["final_mean"]), 4) for r in lam)
+    assert (_num(m.group(2)), _num(m.group(1))) == (finals[0], finals[-1])
+    assert {round(float(r["ci95_low"]), 3) for r in lam} == {_num(m.group(3))}
+    assert {round(float(r["ci95_high"]), 3) for r in lam} == {_num(m.group(4))}
