@@ -138,3 +138,45 @@ def test_sweep_figures_quote_their_csv_files():
     assert (_num(m.group(2)), _num(m.group(1))) == (finals[0], finals[-1])
     assert {round(float(r["ci95_low"]), 3) for r in lam} == {_num(m.group(3))}
     assert {round(float(r["ci95_high"]), 3) for r in lam} == {_num(m.group(4))}
+
+
+def test_profile_prose_quotes_the_profile_files():
+    """The per-update times, shares and FLOP rates the profile prose repeats equal profile.json
+    (map, the CPU default) and profile_vmap.json (one batch) at the precision shown."""
+    import json
+
+    text = _readme()
+    res = os.path.join(ROOT, "docs", "results")
+    prof = {k: json.load(open(os.path.join(res, f)))["methods"]
+            for k, f in (("map", "profile.json"), ("vmap", "profile_vmap.json"))}
+    m = re.search(r"One update for 10 seeds takes ([\d.]+) ms instead of ([\d.]+) ms as one batch "
+                  r"\(gp_pg\), ([\d.]+) instead of\s+([\d.]+) ms \(guided_variance\) and ([\d.]+) "
+                  r"instead of ([\d.]+) ms \(guided_direction\)", text)
+    assert m, "profile sentence not found"
+    got = [float(x) for x in m.groups()]
+    want = [round(prof[loop][meth]["per_update_ms"], 1)
+            for meth in ("gp_pg", "guided_variance", "guided_direction") for loop in ("map", "vmap")]
+    assert got == want
+
+    def share(meth, part):
+        p = prof["map"][meth]
+        if part == "policy_gp":
+            return round(100 * p["rollout_policy_s"] / p["full_update_s"])
+        return round(100 * p[part] / p["full_update_s"])
+
+    m = re.search(r"gp_pg's largest part \((\d+)%\)[\s\S]*?is about as large \((\d+)%\s+and (\d+)%\)", text)
+    assert m, "shares sentence not found"
+    assert int(m.group(1)) == share("gp_pg", "gp_update_s")
+    assert int(m.group(2)) == share("guided_variance", "policy_gp")
+    assert int(m.group(3)) == share("guided_direction", "policy_gp")
+    m = re.search(r"The GP update achieves ([\d.]+)–([\d.]+) GFLOP/s[\s\S]*?against ([\d.]+)–([\d.]+) "
+                  r"GFLOP/s as one batch", text)
+    assert m, "FLOP rate sentence not found"
+    for loop, lo, hi in (("map", m.group(1), m.group(2)), ("vmap", m.group(3), m.group(4))):
+        rates = [prof[loop][k]["gp_update_achieved_gflops_per_s"]
+                 for k in ("gp_pg", "guided_variance", "guided_direction")]
+        assert (float(lo), float(hi)) == (round(min(rates), 1), round(max(rates), 1))
+    with open(os.path.join(res, "bench.json")) as f:
+        ratio = json.load(f)["train"]["numpy_gp_pg"]["ratio_jax_over_numpy"]
+    m = re.search(r"which gives the ([\d.]+)×, not 20×", text)
+    assert m and float(m.group(1)) == round(ratio, 1)
