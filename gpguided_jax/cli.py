@@ -304,7 +304,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="sweep one traced config field x seeds as one compiled program",
         description="Trains one method for every (value, seed) pair of a grid over one traced "
         "TrainConfig field, all runs as one compiled program (a chunk of updates at a time; on "
-        "a CPU one device per core, each taking its runs one after another), then writes results.npz, sweep.csv (final performance: mean reward per step over "
+        "a CPU one device per core, each taking its runs one after another), then writes "
+        "results.npz, sweep.csv (final performance: mean reward per step over "
         "the last 10% of updates, mean and 95% CI over seeds), config.json and "
         "sweep_<field>.png to --out. Static fields (sizes, method, controller, ...) cannot be "
         "swept this way.",

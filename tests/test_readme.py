@@ -180,3 +180,33 @@ def test_profile_prose_quotes_the_profile_files():
         ratio = json.load(f)["train"]["numpy_gp_pg"]["ratio_jax_over_numpy"]
     m = re.search(r"which gives the ([\d.]+)×, not 20×", text)
     assert m and float(m.group(1)) == round(ratio, 1)
+
+
+def test_scaling_rerun_figures_quote_their_file():
+    """The 2026-12-01 seed-scaling re-run's figures equal its scaling.json (and the fits compared
+    with it equal bench.json and the table's scaling.json)."""
+    import json
+
+    text = _readme()
+    res = os.path.join(ROOT, "docs", "results")
+
+    def rows(name):
+        with open(os.path.join(res, name, "scaling.json")) as f:
+            return {r["seeds"]: r for r in json.load(f)["results"]}
+
+    new, table = rows("scaling_2026-12-01"), rows("scaling")
+    with open(os.path.join(res, "bench.json")) as f:
+        bench_fit = json.load(f)["train"]["hyperfit"]["run_s"]["median"]
+    m = re.search(r"gp_pg ([\d,]+)–([\d,]+) seeds·updates/s from 10 to 300 seeds\) and the peak memory "
+                  r"under 1 GiB\s+\(([\d.]+) GiB at 300 seeds\)[\s\S]*?fit took (\d+) s, against ([\d.]+) s "
+                  r"in\s+`docs/results/bench.json` earlier the same day and ([\d.]+) s in the table's", text)
+    assert m, "scaling re-run paragraph not found"
+    rates = [r["methods"]["gp_pg"]["seed_updates_per_s"] for r in new.values()]
+    assert sorted(new) == [10, 30, 100, 300]
+    assert int(m.group(1).replace(",", "")) == round(min(rates))
+    assert int(m.group(2).replace(",", "")) == round(max(rates))
+    assert float(m.group(3)) == round(new[300]["peak_rss_bytes"] / 2**30, 2)
+    assert all(r["peak_rss_bytes"] < 2**30 for r in new.values())
+    assert int(m.group(4)) == round(new[10]["hyperfit_run_s"])
+    assert float(m.group(5)) == round(bench_fit, 1)
+    assert float(m.group(6)) == round(table[10]["hyperfit_run_s"], 1)
