@@ -49,8 +49,15 @@ def _active(state):
     )
 
 
+@jax.jit
+def _predict_all(state, xs, hyper):
+    return jax.vmap(lambda x: sparse_gp.predict(state, x, hyper))(xs)
+
+
 def _predict(state, xs, hyper):
-    mean, var = jax.jit(jax.vmap(lambda x: sparse_gp.predict(state, x, hyper)))(jnp.asarray(xs))
+    """Predictions at the rows of xs (one compiled program per shape and dtype: the state and
+    hyperparameters are arguments, not constants)."""
+    mean, var = _predict_all(state, jnp.asarray(xs), hyper)
     return np.asarray(mean, np.float64), np.asarray(var, np.float64)
 
 
@@ -343,6 +350,14 @@ def test_one_input_repeated_ten_thousand_times(dtype):
 REPLAY_TOL = {jnp.float64: (1e-4, 1e-6), jnp.float32: (1e-2, 1e-3)}  # (mean, variance)
 
 
+@jax.jit
+def _update_batch_traced(state, xs, ys, ts, hyper, age_penalty):
+    """`update_batch` with the hyperparameters and the age penalty as arguments: one compiled
+    program per budget and dtype, whatever the example draws."""
+    return sparse_gp.update_batch(state, xs, ys, hyper, ts, with_info=True, novelty_tol=0.0,
+                                  age_penalty=age_penalty, age_scale=0.5)
+
+
 @settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     seed=st.integers(0, 2**31 - 1),
@@ -371,11 +386,11 @@ def test_state_is_never_finite_but_wrong(seed, log_ratio, duplicate_share, capac
     kw = dict(novelty_tol=0.0, age_penalty=age_penalty, age_scale=0.5)
     for dtype in (jnp.float64, jnp.float32):
         hyper = _hyper(dtype, LS, sf2, sn2)
-        run = _update_batch_jit(hyper, **kw)
         state, infos = sparse_gp.init(capacity, 4, dtype), []
         for lo in range(0, n, 80):  # check after every prefix of 80
             sl = slice(lo, lo + 80)
-            state, info = run(state, jnp.array(xs[sl], dtype), jnp.array(ys[sl], dtype), jnp.array(ts[sl]))
+            state, info = _update_batch_traced(state, jnp.array(xs[sl], dtype), jnp.array(ys[sl], dtype),
+                                               jnp.array(ts[sl]), hyper, jnp.asarray(age_penalty, dtype))
             infos.append(info)
             health = sparse_gp.check(state, hyper, jnp.array(xs[sl], dtype), jnp.array(ys[sl], dtype))
             assert bool(health.finite) and bool(health.posterior_below_prior), health
