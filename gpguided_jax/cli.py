@@ -239,7 +239,6 @@ def _cmd_sweep(args) -> int:
     return 0
 
 
-
 def _add_device_options(parser: argparse.ArgumentParser, what: str) -> None:
     """--devices, --cpu-devices and --seed-loop (`reproduce.per_seed_program`)."""
     parser.add_argument("--devices", type=positive_int, default=None,
