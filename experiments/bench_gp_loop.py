@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import sys
 import time
 
@@ -77,10 +76,7 @@ def main(argv=None) -> int:
         print(f"{method}: scan {row['scan']['run_s_median']:.2f} s, segments "
               f"{row['segments']['run_s_median']:.2f} s, x{row['speedup_segments_over_scan']:.2f}, "
               f"bitwise {same}", file=sys.stderr, flush=True)
-    text = json.dumps(out, indent=2)
-    if args.out:
-        reproduce.atomic_write_text(args.out, text + "\n")
-    print(text)
+    bench.print_report(out, args.out)
     return 0
 
 

@@ -17,7 +17,6 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -27,8 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import gpguided_jax
+from gpguided_jax import bench, hyperfit, reproduce
 from gpguided_jax import config as config_lib
-from gpguided_jax import hyperfit, reproduce
 from gpguided_jax import train as train_lib
 
 gpguided_jax.enable_x64()
@@ -87,10 +86,7 @@ def main(argv=None) -> int:
             "seeds_better": int(np.sum(diff < 0)), "within_tolerance": bool(diff.max() <= TOLERANCE)}
     out["lbfgs_minus_adam_all"] = out["fits"]["lbfgs"]["minus_default_all"]
     out["within_tolerance"] = out["lbfgs_minus_adam_all"]["within_tolerance"]
-    text = json.dumps(out, indent=2)
-    if args.out:
-        reproduce.atomic_write_text(args.out, text)
-    print(text)
+    bench.print_report(out, args.out)
     return 0
 
 

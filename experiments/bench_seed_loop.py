@@ -21,7 +21,6 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 import jax
@@ -72,10 +71,7 @@ def main(argv=None) -> int:
     out["map_speedup"] = out["vmap"]["run_s"] / out["map"]["run_s"]
     out["segments_speedup_over_scan_loop"] = out["map_scan_loop"]["run_s"] / out["map"]["run_s"]
     out["segments_equal_scan_loop_bitwise"] = bench.trees_equal(results["map"], results["map_scan_loop"])
-    text = json.dumps(out, indent=2)
-    if args.out:
-        reproduce.atomic_write_text(args.out, text + "\n")
-    print(text)
+    bench.print_report(out, args.out)
     return 0
 
 

@@ -74,6 +74,18 @@ def trees_equal(a, b) -> bool:
                for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
 
 
+def print_report(report: dict, out: str | None = None) -> None:
+    """Prints a benchmark's JSON report and, given `out`, writes it there too (atomically, the
+    directory created if needed)."""
+    import json
+
+    text = json.dumps(report, indent=2)
+    if out:
+        os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+        reproduce.atomic_write_text(out, text + "\n")
+    print(text)
+
+
 def bench_env(repeats: int, steps: int = 2000, batches=(1, 10, 1000)) -> dict:
     params = pendulum.make_params()
 

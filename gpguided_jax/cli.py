@@ -194,17 +194,11 @@ def _parse_overrides(items: list[str] | None) -> dict:
 def _cmd_bench(args) -> int:
     _set_cpu_devices(None)
     _set_precision("float64")
-    import json
+    from gpguided_jax import bench
 
-    from gpguided_jax import bench, reproduce
-
-    report = bench.run(repeats=args.repeats, seeds=args.seeds, numpy_updates=args.numpy_updates,
-                       quick=args.quick, paper_run=not args.no_paper_run)
-    text = json.dumps(report, indent=2)
-    if args.out:
-        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-        reproduce.atomic_write_text(args.out, text + "\n")
-    print(text)
+    bench.print_report(bench.run(repeats=args.repeats, seeds=args.seeds,
+                                 numpy_updates=args.numpy_updates, quick=args.quick,
+                                 paper_run=not args.no_paper_run), args.out)
     return 0
 
 

@@ -176,25 +176,44 @@ def run_sweep(
     t_start = time.perf_counter()
     mesh = reproduce.make_mesh(num_devices)
     loop = reproduce.resolve_seed_loop(seed_loop, mesh)
-    n_dev = mesh.devices.size
     grid = [(i, s) for i in range(len(values)) for s in seeds]  # value-major
     n_real = len(grid)
-    grid += [grid[-1]] * ((-n_real) % n_dev)  # duplicates only fill devices
+    grid += [grid[-1]] * ((-n_real) % mesh.devices.size)  # duplicates only fill devices
     stacked = jax.tree_util.tree_map(lambda *xs: np.stack(xs), *[cfgs[i] for i, _ in grid])
-    keys = reproduce.seed_keys([s for _, s in grid])
     train = train_lib.make_train(base)
 
     def program(fn, donate=False):
         return reproduce.per_seed_program(fn, mesh, loop, donate=donate)
 
     progress(f"[sweep {field}] {method} / {preset}: {len(values)} values x {len(seeds)} seeds = "
-             f"{n_real} runs of {base.num_updates} updates, one program on {n_dev} device(s) "
-             f"({'one run after another' if loop == 'map' else 'one batch'} per device)")
+             f"{n_real} runs of {base.num_updates} updates, one program on {mesh.devices.size} "
+             f"device(s) ({'one run after another' if loop == 'map' else 'one batch'} per device)")
     t0 = time.perf_counter()
+    state = _initial_states(train, base, field, seeds, grid, stacked, mesh, program)
+    progress(f"[sweep {field}] init (hyperparameter fit) {time.perf_counter() - t0:.1f}s")
+    records = _run_chunks(train, base, field, state, reproduce._shard(stacked, mesh), n_real,
+                          even_chunk_size(base.num_updates, chunk_size), program, progress)
+    shape = (len(values), len(seeds), base.num_updates)
+    records = {k: v.reshape(shape) for k, v in records.items()}
+    rows = summarise_sweep(field, values, records)
+    wall = time.perf_counter() - t_start
+    progress(f"[sweep {field}] done in {wall:.1f}s")
+    for r in rows:
+        if r["seeds_with_skipped_updates"]:
+            progress(f"[sweep {field}] WARNING: {field}={r[field]:g}: {r['seeds_with_skipped_updates']} "
+                     "seed(s) hit non-finite gradient estimates (skipped; the policy stays frozen "
+                     "while they last)")
+    return SweepResult(field, np.asarray(values), np.asarray(seeds), records, base, rows, wall)
+
+
+def _initial_states(train, base, field, seeds, grid, stacked, mesh, program):
+    """Every run's initial state. The GP prior is fitted once per seed and shared along the value
+    axis unless the swept field is one the fit reads (then each run's init fits its own)."""
+    keys = reproduce.seed_keys([s for _, s in grid])
     if base.uses_gp and field not in _HYPERFIT_INPUTS:
-        fit_seeds = reproduce.pad_seeds(seeds, n_dev)
         fit = program(lambda k: train.fit_kernel_for_seed(k, base))
-        kern = jax.device_get(fit(reproduce._shard(reproduce.seed_keys(fit_seeds), mesh)))
+        fit_keys = reproduce.seed_keys(reproduce.pad_seeds(seeds, mesh.devices.size))
+        kern = jax.device_get(fit(reproduce._shard(fit_keys, mesh)))
         idx = np.asarray([seeds.index(s) for _, s in grid])
         kern = jax.tree_util.tree_map(lambda x: np.asarray(x)[idx], kern)
         init = program(lambda k, c, kp: train.init(k, c, kp))
@@ -202,12 +221,13 @@ def run_sweep(
     else:
         init = program(lambda k, c: train.init(k, c))
         state = init(*reproduce._shard((keys, stacked), mesh))
-    jax.block_until_ready(state)
-    progress(f"[sweep {field}] init (hyperparameter fit) {time.perf_counter() - t0:.1f}s")
+    return jax.block_until_ready(state)
 
-    n = even_chunk_size(base.num_updates, chunk_size)
+
+def _run_chunks(train, base, field, state, stacked, n_real, n, program, progress) -> dict:
+    """All updates, `n` per compiled call, with progress after each: field -> (runs, updates)
+    records of the first `n_real` runs (the rest only fill devices)."""
     chunk = program(lambda s, c: train.run_chunk(s, c, n), donate=True)
-    stacked = reproduce._shard(stacked, mesh)
     records = {k: [] for k in RECORD_FIELDS}
     t0 = time.perf_counter()
     for done in range(n, base.num_updates + 1, n):
@@ -223,17 +243,7 @@ def run_sweep(
         if bad:
             msg += f" | WARNING: {bad} non-finite gradient estimates skipped"
         progress(msg)
-    shape = (len(values), len(seeds), base.num_updates)
-    records = {k: np.concatenate(v, axis=1).reshape(shape) for k, v in records.items()}
-    rows = summarise_sweep(field, values, records)
-    wall = time.perf_counter() - t_start
-    progress(f"[sweep {field}] done in {wall:.1f}s")
-    for r in rows:
-        if r["seeds_with_skipped_updates"]:
-            progress(f"[sweep {field}] WARNING: {field}={r[field]:g}: {r['seeds_with_skipped_updates']} "
-                     "seed(s) hit non-finite gradient estimates (skipped; the policy stays frozen "
-                     "while they last)")
-    return SweepResult(field, np.asarray(values), np.asarray(seeds), records, base, rows, wall)
+    return {k: np.concatenate(v, axis=1) for k, v in records.items()}
 
 
 def _x_scale(values: np.ndarray) -> tuple[str, dict]:
