@@ -34,13 +34,24 @@ DEFAULT_COMPILE_CACHE = os.environ.get(
 
 
 def _set_compile_cache(path: str | None) -> None:
-    """JAX's persistent compilation cache (works on CPUs with jax 0.9): a repeated run loads its
-    compiled programs instead of compiling them again. 'none' turns it off."""
+    """JAX's persistent compilation cache: a repeated run loads its compiled programs instead of
+    compiling them again. 'none' turns it off.
+
+    With jax 0.9.2 on CPU every program this project compiles loads correctly (and computes the
+    same results bit for bit), but loading a much larger cached program crashes the process
+    (experiments/compile_cache_check.py). The cache directory is therefore named in the log, and
+    `faulthandler` is on, so that such a crash says where it happened and how to avoid it."""
     if path and path.lower() != "none":
+        import faulthandler
+
         import jax
 
         os.makedirs(path, exist_ok=True)
         jax.config.update("jax_compilation_cache_dir", path)
+        if not faulthandler.is_enabled():
+            faulthandler.enable()
+        print(f"compilation cache: {path} ('--compile-cache none' turns it off)", file=sys.stderr,
+              flush=True)
 
 
 def available_cores() -> int:

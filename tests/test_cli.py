@@ -96,3 +96,26 @@ def test_corrupt_checkpoint_and_kernels_are_set_aside(tmp_path):
     msgs = []
     R.reproduce(out_dir=str(tmp_path), progress=msgs.append, **kw)
     assert any("missing or mis-shaped" in m for m in msgs), msgs
+
+
+def test_a_repeated_run_loads_its_programs_from_the_compile_cache(tmp_path):
+    """The persistent compilation cache on this CPU and jax: the second process loads what the
+    first compiled (it crashed on loading a larger program, experiments/compile_cache_check.py),
+    and its results are the same bit for bit."""
+    cache = tmp_path / "cache"
+
+    def run(name):
+        proc = subprocess.run(
+            [sys.executable, "-m", "gpguided_jax.cli", "reproduce", "--preset", "tiny", "--seeds",
+             "2", "--methods", "guided_direction", "--chunk-size", "3", "--out", str(tmp_path / name),
+             "--compile-cache", str(cache)], capture_output=True, text=True, timeout=600, cwd=ROOT)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        assert f"compilation cache: {cache}" in proc.stderr
+        return {p: os.stat(cache / p).st_mtime_ns for p in os.listdir(cache)}
+
+    entries = run("cold")
+    assert entries, "nothing was written to the compilation cache"
+    assert run("warm") == entries  # loaded: a program compiled again would be written again
+    with np.load(tmp_path / "cold" / "results.npz") as a, np.load(tmp_path / "warm" / "results.npz") as b:
+        for k in R.RECORD_FIELDS:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)

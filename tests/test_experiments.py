@@ -43,3 +43,17 @@ def test_bench_gp_loop_compares_the_two_loops_bitwise():
     row = out["methods"]["gp_pg"]
     assert row["records_and_state_equal_bitwise"] is True
     assert row["scan"]["run_s_median"] > 0 and row["segments"]["run_s_median"] > 0
+
+
+def test_bench_gp_step_block_update_agrees_with_the_pair_by_pair_loop():
+    out = _run(["experiments/bench_gp_step.py", "--iterations", "2", "--repeats", "1"])
+    assert out["real_us_per_pair"] > 0 and out["four_passes_us"]["float64"] > 0
+    for row in out["block"].values():  # the block form of Potter's update: the same posterior
+        assert row["max_cov_alpha_difference"] < 1e-12 and row["max_alpha_difference"] < 1e-10
+
+
+def test_compile_cache_check_round_trips_a_program():
+    out = _run(["experiments/compile_cache_check.py", "--presets", "tiny", "--methods", "reinforce",
+                "--synthetic", "2"])
+    assert out["all_shipped_programs_load"] and out["programs"][0]["cold"]["kernels"] > 0
+    assert out["synthetic"][0]["loads"]

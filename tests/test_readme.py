@@ -210,3 +210,36 @@ def test_scaling_rerun_figures_quote_their_file():
     assert int(m.group(4)) == round(new[10]["hyperfit_run_s"])
     assert float(m.group(5)) == round(bench_fit, 1)
     assert float(m.group(6)) == round(table[10]["hyperfit_run_s"], 1)
+
+
+def test_gp_step_and_compile_cache_prose_quote_their_files():
+    """The GP-step bound (gp_step.json) and the compilation-cache check (compile_cache.json) as
+    the benchmark prose repeats them, at the precision shown."""
+    import json
+
+    text = " ".join(_readme().split())
+    res = os.path.join(ROOT, "docs", "results")
+    step = json.load(open(os.path.join(res, "gp_step.json")))
+    m = re.search(r"a projected pair costs ([\d.]+) µs in the segmented loop, .*? take ([\d.]+) µs on "
+                  r"their own \(([\d.]+) µs in float32.*?Launching one small operation costs ([\d.]+) µs"
+                  r".*? costs ([\d.]+)–([\d.]+) µs per pair in isolation", text)
+    assert m, "GP-step sentence not found"
+    blocks = sorted(round(step["block"][b]["us_per_pair"], 1) for b in ("25", "50"))
+    assert [float(x) for x in m.groups()] == [
+        round(step["real_us_per_pair"], 1), round(step["four_passes_us"]["float64"], 1),
+        round(step["four_passes_us"]["float32"], 1), round(step["small_op_us"], 2), *blocks]
+    assert max(b["max_cov_alpha_difference"] for b in step["block"].values()) <= 2e-16
+
+    cache = json.load(open(os.path.join(res, "compile_cache.json")))
+    m = re.search(r"all (\d+) chunk programs \(2 presets × 4 methods, (\d+)–(\d+) kernels\) load, and so "
+                  r"does a synthetic program of (\d+) unrolled steps \((\d+) kernels\), but one of (\d+) "
+                  r"steps \((\d+) kernels\) crashes", text)
+    assert m, "compilation-cache sentence not found"
+    progs = cache["programs"]
+    assert all(p["loads"] for p in progs) and int(m.group(1)) == len(progs)
+    kernels = [p["cold"]["kernels"] for p in progs]
+    assert [int(m.group(2)), int(m.group(3))] == [min(kernels), max(kernels)]
+    synth = {s["steps"]: s for s in cache["synthetic"]}
+    ok, bad = synth[int(m.group(4))], synth[int(m.group(6))]
+    assert ok["loads"] and ok["cold"]["kernels"] == int(m.group(5))
+    assert not bad["loads"] and bad["warm"]["returncode"] != 0 and bad["cold"]["kernels"] == int(m.group(7))
