@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
@@ -43,12 +42,7 @@ def _timed(f, x, per, repeats):
     """Median over `repeats` runs of the compiled f(x), divided by `per`, in microseconds."""
     g = jax.jit(f)
     jax.block_until_ready(g(x))
-    runs = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(g(x))
-        runs.append((time.perf_counter() - t0) / per * 1e6)
-    return float(np.median(runs))
+    return float(np.median(bench.timed_in_turn({"f": g}, {"f": (x,)}, repeats)["f"])) / per * 1e6
 
 
 def _block_update(state, k_rows, ys, noise_variance):
