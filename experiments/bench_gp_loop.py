@@ -27,7 +27,7 @@ import gpguided_jax
 from gpguided_jax import bench, distributed, reproduce, sparse_gp
 from gpguided_jax import config as config_lib
 from gpguided_jax import train as train_lib
-from gpguided_jax.cli import available_cores
+from gpguided_jax.cli import available_cores, single_threaded_lapack
 
 gpguided_jax.enable_x64()
 
@@ -40,6 +40,7 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", nargs="+", default=["gp_pg", "guided_variance", "guided_direction"])
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
+    single_threaded_lapack()
     jax.config.update("jax_num_cpu_devices", available_cores())
     mesh = reproduce.make_mesh(None, args.seeds)
     seeds = reproduce.pad_seeds(range(args.seeds), mesh.devices.size)

@@ -38,6 +38,7 @@ from gpguided_jax import config as config_lib
 from gpguided_jax import reproduce
 from gpguided_jax import stats as stats_lib
 from gpguided_jax import train as train_lib
+from gpguided_jax.cli import single_threaded_lapack
 
 gpguided_jax.enable_x64()
 
@@ -133,6 +134,7 @@ def markdown(result: dict) -> str:
 
 
 def main(argv=None) -> int:
+    single_threaded_lapack()  # as `gpguided reproduce`, whose runs (2) compares
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="paper")
     ap.add_argument("--seeds", type=int, nargs="+", default=list(range(1000, 1010)))

@@ -41,7 +41,7 @@ import gpguided_jax
 from gpguided_jax import config as config_lib
 from gpguided_jax import distributed, estimators, reproduce, sparse_gp
 from gpguided_jax import train as T
-from gpguided_jax.cli import available_cores
+from gpguided_jax.cli import available_cores, single_threaded_lapack
 
 gpguided_jax.enable_x64()
 
@@ -182,6 +182,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cpu-devices", type=int, default=available_cores(),
                     help="JAX CPU devices (default: one per available core, as `gpguided reproduce`)")
     args = ap.parse_args(argv)
+    single_threaded_lapack()
     jax.config.update("jax_num_cpu_devices", args.cpu_devices)
     seeds = list(range(100, 100 + args.seeds))  # tuning seeds: this is not a result
     result = {"seeds": args.seeds, "updates": args.updates, "warmup": args.warmup, "dtype": args.dtype,

@@ -29,7 +29,7 @@ import subprocess
 import sys
 import time
 
-from gpguided_jax.cli import available_cores  # light: imports no JAX
+from gpguided_jax.cli import available_cores, single_threaded_lapack  # light: imports no JAX
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CHUNK = 50
@@ -39,6 +39,7 @@ def measure(num_seeds: int, measured_updates: int | None = None, seed_loop: str 
             cpu_devices: int = 1) -> dict:
     import jax
 
+    single_threaded_lapack()
     jax.config.update("jax_num_cpu_devices", cpu_devices)
     import numpy as np
 

@@ -20,6 +20,37 @@ def _python(code: str, **env):
     return proc
 
 
+def test_lapack_runs_one_thread_unless_the_user_says_otherwise():
+    """One OpenBLAS thread; a user's own setting, or an already-loaded LAPACK, is left alone."""
+    assert cli.lapack_threads({}, lapack_loaded=False) == "1"
+    assert cli.lapack_threads({"PATH": "/bin"}, lapack_loaded=False) == "1"
+    assert cli.lapack_threads({}, lapack_loaded=True) is None
+    for name in cli.LAPACK_THREAD_VARIABLES:
+        assert cli.lapack_threads({name: "2"}, lapack_loaded=False) is None
+
+
+def test_openblas_runs_one_thread_under_the_cli():
+    """End to end: after `_set_cpu_devices(2)` the OpenBLAS that JAX's LAPACK calls use (SciPy's)
+    runs one thread (with one per core it oversubscribed the cores: the fit took twice as long)."""
+    code = (
+        "from gpguided_jax import cli; cli._set_cpu_devices(2)\n"
+        "import jax, jax.numpy as jnp; jax.jit(jnp.linalg.cholesky)(jnp.eye(3)).block_until_ready()\n"
+        "import ctypes, glob, os, scipy\n"
+        "libs = glob.glob(os.path.join(os.path.dirname(scipy.__file__) + '.libs', '*openblas*'))\n"
+        "print(ctypes.CDLL(libs[0]).scipy_openblas_get_num_threads() if libs else 'none')\n"
+        "print(len(jax.devices()), cli.available_cores())")
+    env = {k: v for k, v in os.environ.items()
+           if k not in cli.LAPACK_THREAD_VARIABLES and k != "XLA_FLAGS"}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                          env=env, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    threads, devices_cores = proc.stdout.split("\n")[:2]
+    if threads == "none":
+        pytest.skip("SciPy does not bundle OpenBLAS here")
+    assert int(devices_cores.split()[0]) == 2
+    assert int(threads) == 1
+
+
 @pytest.mark.parametrize(
     "args,message",
     [
