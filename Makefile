@@ -27,7 +27,10 @@ run: $(STAMP)
 
 # The README's Fig. 5, failure and consistency tables: both dtypes on the reported seeds (never
 # used for tuning), the batch-vs-alone and float32-vs-float64 comparison, then the README tables.
+# It starts afresh: a checkpoint or kernels.npz left by an earlier run would be resumed, whatever
+# code wrote it (the checkpoint's digest covers the config and seeds, not the code).
 results: $(STAMP)
+	rm -f docs/results/paper_float64/checkpoint_* docs/results/paper_float64/kernels.npz docs/results/paper_float32/checkpoint_* docs/results/paper_float32/kernels.npz
 	$(VENV)/bin/gpguided reproduce --preset paper --seeds $(SEEDS) --seed-start $(SEED_START) --dtype float64 --out docs/results/paper_float64
 	$(VENV)/bin/gpguided reproduce --preset paper --seeds $(SEEDS) --seed-start $(SEED_START) --dtype float32 --out docs/results/paper_float32
 	$(PY) experiments/consistency.py --seeds $(CONSISTENCY_SEEDS) --f64 docs/results/paper_float64 --f32 docs/results/paper_float32 --out docs/results/consistency

@@ -388,6 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    single_threaded_lapack()  # first: building the parser may import modules that load LAPACK
     args = build_parser().parse_args(argv)
     return args.func(args)
 

@@ -1,6 +1,6 @@
 """Summary statistics over seeds, with rliable's definitions (Agarwal et al., NeurIPS 2021).
 
-NumPy/SciPy, for finished runs (not traced). With one task (one environment), rliable's
+NumPy, for finished runs (not traced). With one task (one environment), rliable's
 "stratified" bootstrap resamples the runs (seeds) of each method with replacement:
 
 * `iqm`: the interquartile mean, ``scipy.stats.trim_mean(x, 0.25)`` (rliable `aggregate_iqm`);
@@ -15,18 +15,34 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
-from scipy import stats
 
 DEFAULT_REPS = 20_000
 
 
+def trim_mean(a, proportiontocut: float, axis: int = 0) -> np.ndarray:
+    """``scipy.stats.trim_mean`` for NumPy arrays, the same operations (so the same bits): the
+    mean after cutting int(proportiontocut * n) values from each end along `axis`. In NumPy
+    because importing scipy.stats loads SciPy's OpenBLAS, whose thread count the command line
+    must set before it loads (`cli.single_threaded_lapack`), and takes over a second."""
+    a = np.asarray(a)
+    n = a.shape[axis]
+    low = int(proportiontocut * n)
+    high = n - low
+    if low > high:
+        raise ValueError("Proportion too big.")
+    part = np.partition(a, (low, high - 1), axis)
+    keep = [slice(None)] * part.ndim
+    keep[axis] = slice(low, high)
+    return np.mean(part[tuple(keep)], axis=axis)
+
+
 def iqm(x) -> float:
     """Interquartile mean: the mean of the middle 50% (25% trimmed from each end)."""
-    return float(stats.trim_mean(np.asarray(x, float).ravel(), proportiontocut=0.25))
+    return float(trim_mean(np.asarray(x, float).ravel(), proportiontocut=0.25))
 
 
 def _trim_mean_rows(samples: np.ndarray) -> np.ndarray:
-    return stats.trim_mean(samples, proportiontocut=0.25, axis=1)
+    return trim_mean(samples, proportiontocut=0.25, axis=1)
 
 
 def bootstrap_ci(x, statistic: Callable = _trim_mean_rows, *, reps: int = DEFAULT_REPS,

@@ -31,9 +31,11 @@ def test_lapack_runs_one_thread_unless_the_user_says_otherwise():
 
 def test_openblas_runs_one_thread_under_the_cli():
     """End to end: after `_set_cpu_devices(2)` the OpenBLAS that JAX's LAPACK calls use (SciPy's)
-    runs one thread (with one per core it oversubscribed the cores: the fit took twice as long)."""
-    code = (
-        "from gpguided_jax import cli; cli._set_cpu_devices(2)\n"
+    runs one thread (with one per core it oversubscribed the cores: the fit took twice as long).
+    It failed while `stats` imported scipy.stats, which loads OpenBLAS before the variable is set."""
+    code = (  # what `cli.main` imports before a command sets the devices, then the devices
+        "from gpguided_jax import cli; cli.build_parser()\n"
+        "from gpguided_jax import bench, reproduce, sweep; cli._set_cpu_devices(2)\n"
         "import jax, jax.numpy as jnp; jax.jit(jnp.linalg.cholesky)(jnp.eye(3)).block_until_ready()\n"
         "import ctypes, glob, os, scipy\n"
         "libs = glob.glob(os.path.join(os.path.dirname(scipy.__file__) + '.libs', '*openblas*'))\n"

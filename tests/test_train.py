@@ -123,8 +123,22 @@ def test_unknown_preset_and_field():
         C.preset("tiny", bogus=1)
 
 
+IMPROVE_SEEDS = jax.random.split(jax.random.PRNGKey(42), 4)
+
+
+def _improve_config(method):
+    return C.preset("paper", method=method, num_updates=120, gp_capacity=30)
+
+
+@pytest.fixture(scope="module")
+def improve_priors():
+    """The seeds' hyperparameter fit, done once: it depends only on the seed's initial data, so the
+    three GP methods share it (as `gpguided reproduce` does)."""
+    return jax.jit(jax.vmap(T.make_train(_improve_config("gp_pg")).fit_kernel_for_seed))(IMPROVE_SEEDS)
+
+
 @pytest.mark.parametrize("method", ["gp_pg", "guided_variance", "guided_direction"])
-def test_gp_methods_improve_on_a_small_problem(method):
+def test_gp_methods_improve_on_a_small_problem(method, improve_priors):
     """The paper preset's task at a reduced size (120 updates, M = 30; 4 fixed seeds), with the
     preset's hyperparameter fit, Gibbs candidates and gradient clipping.
 
@@ -134,8 +148,10 @@ def test_gp_methods_improve_on_a_small_problem(method):
     samples) and the candidates (K = 8); with those, guided_variance and guided_direction did not
     improve on some seeds.
     """
-    cfg = C.preset("paper", method=method, num_updates=120, gp_capacity=30)
-    _, rec = jax.jit(jax.vmap(T.make_train(cfg)))(jax.random.split(jax.random.PRNGKey(42), 4))
+    cfg = _improve_config(method)
+    train = T.make_train(cfg)
+    _, rec = jax.jit(jax.vmap(lambda k, p: train.run_chunk(train.init(k, cfg, p), cfg)))(
+        IMPROVE_SEEDS, improve_priors)
     r = np.asarray(rec.mean_reward)
     assert r[:, -20:].mean() > r[:, :20].mean() + 0.01, (r[:, :20].mean(1), r[:, -20:].mean(1))
     assert np.all(np.asarray(rec.gp_guard) == 0) and np.all(np.asarray(rec.nonfinite_grad) == 0)
@@ -161,17 +177,17 @@ def test_resume_equals_uninterrupted(tmp_path):
 def test_two_host_devices_equal_one(tmp_path):
     """Runs the CLI in subprocesses with 2 forced host CPU devices.
 
-    Seeds 0-3 sharded over 2 devices vs the same seeds on one device, and seeds 0-1 on one device
-    vs the first device's share. On a CPU each device runs its seeds one after another
-    (``--seed-loop auto`` = map), so a seed's result does not depend on its batch-mates or on the
-    device count: the results are asserted bitwise equal. With ``--seed-loop vmap`` (what an
+    Seeds 0-3 sharded over 2 devices vs the same seeds on one device. On a CPU each device runs
+    its seeds one after another (``--seed-loop auto`` = map), so a seed's result does not depend
+    on the device count: the results are asserted bitwise equal (that it does not depend on its
+    batch-mates either: `test_per_seed_program_map_equals_one_seed_alone`). With ``--seed-loop vmap`` (what an
     accelerator runs) XLA compiles the batch differently and last-ulp differences (~2.5e-9
     relative after 6 updates) grow through training (to ~1e-5 in the gradient norm); there
     agreement is asserted at 1e-4 relative, far below any difference between seeds (~1e-1).
     """
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     outs = {}
-    for n, seeds, loop in ((1, 2, "auto"), (2, 4, "auto"), (1, 4, "auto"), (2, 4, "vmap")):
+    for n, seeds, loop in ((2, 4, "auto"), (1, 4, "auto"), (2, 4, "vmap")):
         out = tmp_path / f"dev{n}_seeds{seeds}_{loop}"
         cmd = [sys.executable, "-m", "gpguided_jax.cli", "reproduce", "--preset", "tiny",
                "--seeds", str(seeds), "--methods", "reinforce", "guided_variance", "--devices",
@@ -182,10 +198,8 @@ def test_two_host_devices_equal_one(tmp_path):
         config = json.loads((out / "config.json").read_text())
         assert len(config["devices"]) == n and config["devices"][-1] == f"TFRT_CPU_{n - 1}"
         assert config["seed_loop"] == ("map" if loop == "auto" else loop)
-    one, two, one_all = outs[1, 2, "auto"], outs[2, 4, "auto"], outs[1, 4, "auto"]
-    batched = outs[2, 4, "vmap"]
+    two, one_all, batched = outs[2, 4, "auto"], outs[1, 4, "auto"], outs[2, 4, "vmap"]
     for k in ("mean_reward", "exploration_std", "grad_norm", "num_basis_vectors", "gp_guard"):
-        np.testing.assert_array_equal(one[k], two[k][:, :2])
         np.testing.assert_array_equal(one_all[k], two[k])
         np.testing.assert_allclose(batched[k], two[k], rtol=1e-4, atol=1e-9)
 

@@ -1,0 +1,44 @@
+"""Summary statistics (gpguided_jax.stats) against SciPy, the independent reference."""
+
+import numpy as np
+import pytest
+from scipy import stats as sp_stats
+
+from gpguided_jax import stats
+
+
+@pytest.mark.parametrize("shape,axis", [((10,), 0), ((7,), 0), ((100,), 0), ((50, 13), 1),
+                                        ((13, 50), 0), ((4, 3), 1)])
+@pytest.mark.parametrize("cut", [0.0, 0.1, 0.25, 0.49])
+def test_trim_mean_is_scipys_bit_for_bit(shape, axis, cut):
+    rng = np.random.default_rng(sum(shape) + int(100 * cut))
+    a = rng.normal(size=shape) * 10.0 ** rng.integers(-3, 4, size=shape)
+    a.flat[::3] = a.flat[0]  # ties
+    np.testing.assert_array_equal(stats.trim_mean(a, cut, axis=axis),
+                                  sp_stats.trim_mean(a, cut, axis=axis))
+
+
+def test_trim_mean_refuses_a_proportion_above_one_half():
+    with pytest.raises(ValueError, match="too big"):
+        stats.trim_mean(np.arange(4.0), 0.8)
+
+
+def test_iqm_by_hand():
+    assert stats.iqm([1, 2, 3, 5]) == 2.5
+    assert stats.iqm([100.0, 1, 2, 3, 4, 5, 6, -100]) == pytest.approx(3.5)  # 2 cut each end
+
+
+def test_probability_of_improvement_is_mann_whitney_u_over_nm():
+    rng = np.random.default_rng(0)
+    x, y = rng.integers(0, 5, 12).astype(float), rng.integers(0, 5, 9).astype(float)  # with ties
+    u = sp_stats.mannwhitneyu(x, y, alternative="greater").statistic
+    assert stats.probability_of_improvement(x, y) == pytest.approx(u / (12 * 9), abs=1e-15)
+
+
+def test_bootstrap_interval_brackets_the_iqm_and_is_reproducible():
+    x = np.random.default_rng(1).normal(size=30)
+    lo, hi = stats.bootstrap_ci(x, reps=2000)
+    assert lo < stats.iqm(x) < hi
+    assert (lo, hi) == stats.bootstrap_ci(x, reps=2000)
+    lo_p, hi_p = stats.probability_of_improvement_ci(x + 1.0, x, reps=2000)
+    assert 0.5 < lo_p <= hi_p <= 1.0
