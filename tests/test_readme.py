@@ -2,6 +2,7 @@
 
 import csv
 import importlib.util
+import json
 import os
 import re
 
@@ -93,27 +94,28 @@ def test_benchmark_prose_quotes_the_result_files():
     assert float(one_pct) == round(100 * loop["joins_fraction_one_seed"], 1)
 
 
-def test_cross_machine_rerun_figures_quote_their_file():
-    """The known-limitations figures of the 2026-12-01 re-run equal its summary file."""
+def test_cross_machine_figures_quote_their_files():
+    """The known-limitations figures: three float64 runs (previous host, new host with OpenBLAS's
+    default threads, new host with one LAPACK thread = the current results)."""
     import csv
 
     text = _readme()
-    path = os.path.join(ROOT, "docs", "results", "rerun_2026-12-01", "summary.csv")
-    rows = {r["method"]: r for r in csv.DictReader(open(path))}
-    ref = {r["method"]: r for r in csv.DictReader(open(
-        os.path.join(ROOT, "docs", "results", "paper_float64", "summary.csv")))}
-    gd, gd0 = rows["guided_direction"], ref["guided_direction"]
-    m = re.search(r"final IQM is\s+(-[\d.]+) in both runs, but its mean is (-[\d.]+) instead of (-[\d.]+), "
-                  r"and (\d+) seeds end below the\s+zero-torque policy instead of (\d+)", text)
-    assert m, "re-run bullet not found"
-    iqm, mean, mean0, fail, fail0 = m.groups()
-    assert float(iqm) == round(float(gd["final_iqm"]), 4) == round(float(gd0["final_iqm"]), 4)
-    assert float(mean) == round(float(gd["final_mean"]), 3)
-    assert float(mean0) == round(float(gd0["final_mean"]), 3)
-    assert int(fail) == int(gd["fail_below_zero_torque"]) and int(fail0) == int(gd0["fail_below_zero_torque"])
-    assert rows["reinforce"] == ref["reinforce"]
-    for name in ("gp_pg", "guided_variance"):
-        assert abs(float(rows[name]["final_mean"]) - float(ref[name]["final_mean"])) < 1e-11
+    runs = [{r["method"]: r for r in csv.DictReader(open(
+        os.path.join(ROOT, "docs", "results", d, "summary.csv")))}
+        for d in ("previous_host", "rerun_2026-12-01", "paper_float64")]
+    num = r"(-[\d.]+)"
+    m = re.search(rf"final IQM\s+is {num}, {num} and {num}, its mean {num}, {num} and {num}, and "
+                  r"(\d+), (\d+) and (\d+) seeds\s+end below the zero-torque policy", text)
+    assert m, "cross-machine bullet not found"
+    g = m.groups()
+    gd = [run["guided_direction"] for run in runs]
+    assert [float(x) for x in g[0:3]] == [round(float(r["final_iqm"]), 4) for r in gd]
+    assert [float(x) for x in g[3:6]] == [round(float(r["final_mean"]), 3) for r in gd]
+    assert [int(x) for x in g[6:9]] == [int(r["fail_below_zero_torque"]) for r in gd]
+    for run in runs[1:]:
+        assert run["reinforce"] == runs[0]["reinforce"]
+        for name in ("gp_pg", "guided_variance"):
+            assert abs(float(run[name]["final_mean"]) - float(runs[0][name]["final_mean"])) < 1e-11
 
 
 def _num(text: str) -> float:
@@ -243,3 +245,40 @@ def test_gp_step_and_compile_cache_prose_quote_their_files():
     ok, bad = synth[int(m.group(4))], synth[int(m.group(6))]
     assert ok["loads"] and ok["cold"]["kernels"] == int(m.group(5))
     assert not bad["loads"] and bad["warm"]["returncode"] != 0 and bad["cold"]["kernels"] == int(m.group(7))
+
+
+def test_lapack_threads_prose_quotes_its_file():
+    """The Benchmarks paragraph on LAPACK threads equals docs/results/lapack_threads.json."""
+    text = _readme()
+    with open(os.path.join(ROOT, "docs", "results", "lapack_threads.json")) as f:
+        lt = json.load(f)
+    m = re.search(r"in fresh processes, the two settings in turn: ([\d.]+) s with OpenBLAS's default, "
+                  r"([\d.]+) s with one\s+thread \(([\d.]+)×\)", text)
+    assert m, "LAPACK threads paragraph not found"
+    default, one, ratio = map(float, m.groups())
+    assert default == round(lt["settings"]["default"]["fit_s"]["median"], 1)
+    assert one == round(lt["settings"]["one_thread"]["fit_s"]["median"], 1)
+    assert ratio == round(lt["default_over_one_thread"], 1)
+    assert lt["settings"]["one_thread"]["same_bits_in_every_trial"]
+    assert lt["settings"]["default"]["same_bits_in_every_trial"]
+    assert not lt["same_bits_across_settings"]
+
+
+def test_failing_seed_prose_quotes_the_summary_files():
+    """The sentence under the failures table equals both dtypes' summary files."""
+    import csv
+
+    text = _readme()
+    rows = {dt: {r["method"]: r for r in csv.DictReader(open(
+        os.path.join(ROOT, "docs", "results", f"paper_{dt}", "summary.csv")))}
+        for dt in ("float64", "float32")}
+    m = re.search(r"REINFORCE in (\d+) of 100 seeds \(in both dtypes\), guided_direction\s+in (\d+) in "
+                  r"float64 and (\d+) in float32", text)
+    assert m, "failing-seed sentence not found"
+    rf, gd64, gd32 = map(int, m.groups())
+    assert rf == int(rows["float64"]["reinforce"]["failing_seeds"]) == int(rows["float32"]["reinforce"]["failing_seeds"])
+    assert gd64 == int(rows["float64"]["guided_direction"]["failing_seeds"])
+    assert gd32 == int(rows["float32"]["guided_direction"]["failing_seeds"])
+    for dt in rows:
+        for name in ("gp_pg", "guided_variance"):
+            assert int(rows[dt][name]["failing_seeds"]) == 0
