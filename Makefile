@@ -62,7 +62,7 @@ demo: $(STAMP)
 	$(VENV)/bin/gpguided demo --out $(OUT)/demo
 
 test: $(STAMP)
-	$(PY) -m pytest -q -n 2 tests
+	$(PY) -m pytest -q -n 2 --dist loadgroup tests
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check gpguided_jax experiments tests

@@ -88,17 +88,12 @@ def test_float64_without_x64_is_refused_with_advice():
     assert proc.returncode == 0 and proc.stdout.strip() == "float32", proc.stderr
 
 
-@pytest.mark.parametrize("dtype", ["float32", "float64"])
-def test_cli_runs_in_both_dtypes(tmp_path, dtype):
-    """The whole pipeline from the command line; float32 runs with JAX's x64 mode off."""
-    out = tmp_path / dtype
-    proc = subprocess.run(
-        [sys.executable, "-m", "gpguided_jax.cli", "reproduce", "--preset", "tiny", "--seeds", "2",
-         "--methods", "reinforce", "guided_variance", "--dtype", dtype, "--chunk-size", "3",
-         "--out", str(out)], capture_output=True, text=True, timeout=600, cwd=ROOT)
+def _check_cli_run(proc, out, dtype, method):
+    """A finished `gpguided reproduce`: its tables printed, `method`'s checkpoint in `dtype`, every
+    record finite, no temporary file left."""
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "failing seeds" in proc.stdout and "P(X > Y)" in proc.stdout
-    with np.load(out / "checkpoint_guided_variance.npz") as f:
+    with np.load(out / f"checkpoint_{method}.npz") as f:
         floats = [f[k] for k in f.files if k.startswith("leaf_") and f[k].dtype.kind == "f"]
     assert floats and all(x.dtype == np.dtype(dtype) for x in floats)
     with np.load(out / "results.npz") as f:
@@ -106,6 +101,17 @@ def test_cli_runs_in_both_dtypes(tmp_path, dtype):
             assert np.all(np.isfinite(f[k])), k
     leftovers = [p for p in os.listdir(out) if ".tmp" in p]
     assert not leftovers, leftovers
+
+
+def test_cli_runs_in_float32(tmp_path):
+    """The whole pipeline from the command line in float32, with JAX's x64 mode off (float64:
+    `test_a_repeated_run_loads_its_programs_from_the_compile_cache`)."""
+    out = tmp_path / "float32"
+    proc = subprocess.run(
+        [sys.executable, "-m", "gpguided_jax.cli", "reproduce", "--preset", "tiny", "--seeds", "2",
+         "--methods", "reinforce", "guided_variance", "--dtype", "float32", "--chunk-size", "3",
+         "--out", str(out)], capture_output=True, text=True, timeout=600, cwd=ROOT)
+    _check_cli_run(proc, out, "float32", "guided_variance")
 
 
 def test_corrupt_checkpoint_and_kernels_are_set_aside(tmp_path):
@@ -140,9 +146,10 @@ def test_a_repeated_run_loads_its_programs_from_the_compile_cache(tmp_path):
     def run(name):
         proc = subprocess.run(
             [sys.executable, "-m", "gpguided_jax.cli", "reproduce", "--preset", "tiny", "--seeds",
-             "2", "--methods", "guided_direction", "--chunk-size", "3", "--out", str(tmp_path / name),
-             "--compile-cache", str(cache)], capture_output=True, text=True, timeout=600, cwd=ROOT)
-        assert proc.returncode == 0, proc.stderr[-3000:]
+             "2", "--methods", "reinforce", "guided_direction", "--chunk-size", "3", "--out",
+             str(tmp_path / name), "--compile-cache", str(cache)],
+            capture_output=True, text=True, timeout=600, cwd=ROOT)
+        _check_cli_run(proc, tmp_path / name, "float64", "guided_direction")  # the float64 CLI run
         assert f"compilation cache: {cache}" in proc.stderr
         return {p: os.stat(cache / p).st_mtime_ns for p in os.listdir(cache)}
 

@@ -197,11 +197,12 @@ def test_scaling_rerun_figures_quote_their_file():
             return {r["seeds"]: r for r in json.load(f)["results"]}
 
     new, table = rows("scaling_2026-12-01"), rows("scaling")
-    with open(os.path.join(res, "bench.json")) as f:
+    with open(os.path.join(res, "bench_2026-12-01.json")) as f:  # the benchmark run of that day
         bench_fit = json.load(f)["train"]["hyperfit"]["run_s"]["median"]
     m = re.search(r"gp_pg ([\d,]+)–([\d,]+) seeds·updates/s from 10 to 300 seeds\) and the peak memory "
                   r"under 1 GiB\s+\(([\d.]+) GiB at 300 seeds\)[\s\S]*?fit took (\d+) s, against ([\d.]+) s "
-                  r"in\s+`docs/results/bench.json` earlier the same day and ([\d.]+) s in the table's", text)
+                  r"in\s+`docs/results/bench_2026-12-01.json` earlier the same day and ([\d.]+) s in the "
+                  r"table's", text)
     assert m, "scaling re-run paragraph not found"
     rates = [r["methods"]["gp_pg"]["seed_updates_per_s"] for r in new.values()]
     assert sorted(new) == [10, 30, 100, 300]
@@ -276,9 +277,38 @@ def test_failing_seed_prose_quotes_the_summary_files():
                   r"float64 and (\d+) in float32", text)
     assert m, "failing-seed sentence not found"
     rf, gd64, gd32 = map(int, m.groups())
-    assert rf == int(rows["float64"]["reinforce"]["failing_seeds"]) == int(rows["float32"]["reinforce"]["failing_seeds"])
+    for dt in rows:
+        assert rf == int(rows[dt]["reinforce"]["failing_seeds"])
     assert gd64 == int(rows["float64"]["guided_direction"]["failing_seeds"])
     assert gd32 == int(rows["float32"]["guided_direction"]["failing_seeds"])
     for dt in rows:
         for name in ("gp_pg", "guided_variance"):
             assert int(rows[dt][name]["failing_seeds"]) == 0
+
+
+def test_benchmark_comparison_with_the_previous_run_quotes_both_files():
+    """The targets' comparison with the 2026-12-01 benchmark run equals bench_2026-12-01.json
+    (and this run's side, bench.json)."""
+    text = _readme()
+    res = os.path.join(ROOT, "docs", "results")
+    with open(os.path.join(res, "bench_2026-12-01.json")) as f:
+        old = json.load(f)
+    with open(os.path.join(res, "bench.json")) as f:
+        new = json.load(f)
+    m = re.search(r"On 2026-12-01, a faster hour, it took ([\d.]+) s and ([\d.]+) s\s+with a fit "
+                  r"of ([\d.]+) s", text)
+    assert m, "previous paper-run sentence not found"
+    assert float(m.group(1)) == round(old["paper_run"]["cold_s"]["median"], 1)
+    assert float(m.group(2)) == round(old["paper_run"]["warm_s"]["median"], 1)
+    assert float(m.group(3)) == round(old["train"]["hyperfit"]["run_s"]["median"], 1)
+    m = re.search(r"missed by 1.09×\*\*; ([\d.]+)× on\s+2026-12-01", text)
+    assert m and float(m.group(1)) == round(old["train"]["numpy_gp_pg"]["ratio_jax_over_numpy"], 1)
+    m = re.search(r"this hour the NumPy loop took ([\d.]+) ms per\s+update against ([\d.]+) ms, and gp_pg's "
+                  r"run ([\d.]+) s against ([\d.]+) s", text)
+    assert m, "NumPy-loop comparison not found"
+    per_update = lambda b: b["train"]["numpy_gp_pg"]["seconds_per_update_one_seed"] * 1e3  # noqa: E731
+    gp_run = lambda b: b["train"]["methods"]["gp_pg"]["run_s"]["median"]  # noqa: E731
+    assert [float(x) for x in m.groups()] == [round(per_update(new), 1), round(per_update(old), 1),
+                                             round(gp_run(new), 1), round(gp_run(old), 1)]
+    new_ratio = new["train"]["numpy_gp_pg"]["ratio_jax_over_numpy"]
+    assert f"missed by {20 / new_ratio:.2f}×" in text

@@ -18,8 +18,12 @@ from gpguided_jax import train as T
 KEYS = jax.random.split(jax.random.PRNGKey(0), 2)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def tiny_runs():
+    """Every method's tiny run, computed once: the tests that use it are in one xdist group
+    (`make test` runs `--dist loadgroup`), so that one worker computes it, not each, and the
+    fixture is session-scoped, so that the worker does not recompute it whenever other modules'
+    tests come in between."""
     out = {}
     for m in C.METHODS:
         cfg = C.preset("tiny", method=m)
@@ -28,6 +32,7 @@ def tiny_runs():
     return out
 
 
+@pytest.mark.xdist_group("tiny_runs")
 @pytest.mark.parametrize("method", C.METHODS)
 def test_every_method_runs_with_finite_records(tiny_runs, method):
     _, (state, rec) = tiny_runs[method]
@@ -48,6 +53,7 @@ def test_every_method_runs_with_finite_records(tiny_runs, method):
         assert np.all(np.asarray(rec.num_basis_vectors) <= cfg.gp_capacity)
 
 
+@pytest.mark.xdist_group("tiny_runs")
 @pytest.mark.parametrize("method", ["reinforce", "guided_direction"])
 def test_same_key_bitwise_identical_and_seeds_differ(tiny_runs, method):
     fn, (_, rec) = tiny_runs[method]
@@ -130,13 +136,14 @@ def _improve_config(method):
     return C.preset("paper", method=method, num_updates=120, gp_capacity=30)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # see `tiny_runs`
 def improve_priors():
     """The seeds' hyperparameter fit, done once: it depends only on the seed's initial data, so the
     three GP methods share it (as `gpguided reproduce` does)."""
     return jax.jit(jax.vmap(T.make_train(_improve_config("gp_pg")).fit_kernel_for_seed))(IMPROVE_SEEDS)
 
 
+@pytest.mark.xdist_group("improve")  # one worker fits the shared priors
 @pytest.mark.parametrize("method", ["gp_pg", "guided_variance", "guided_direction"])
 def test_gp_methods_improve_on_a_small_problem(method, improve_priors):
     """The paper preset's task at a reduced size (120 updates, M = 30; 4 fixed seeds), with the
