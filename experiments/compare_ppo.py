@@ -101,8 +101,9 @@ def num_evals_for(budget: int) -> int:
 # --------------------------------------------------------------------------- GP methods
 
 
-def run_methods(preset, seeds, overrides, out_dir):
-    """reproduce() into out_dir; returns (results dict, per-method wall times, hyperfit time)."""
+def run_methods(preset, seeds, overrides, out_dir, methods=config_lib.METHODS):
+    """reproduce() of `methods` into out_dir; returns (results dict, per-method wall times,
+    hyperfit time)."""
     stamps = []
 
     def progress(msg):
@@ -111,12 +112,12 @@ def run_methods(preset, seeds, overrides, out_dir):
 
     t0 = time.perf_counter()
     res = reproduce_lib.reproduce(
-        preset, seeds, config_lib.METHODS, out_dir, overrides=overrides, progress=progress
+        preset, seeds, list(methods), out_dir, overrides=overrides, progress=progress
     )
     if not res["complete"]:
         raise RuntimeError("reproduce did not finish")
     # Attribute each span between progress messages to the method that reported at its end.
-    walls = {m: 0.0 for m in config_lib.METHODS}
+    walls = {m: 0.0 for m in methods}
     hyperfit = 0.0
     prev = t0
     for t, msg in stamps:
@@ -295,6 +296,8 @@ def main(argv=None):
     ap.add_argument(
         "--from", dest="from_dir", default=None, help="load the methods from a finished reproduce output dir"
     )
+    ap.add_argument("--methods", nargs="+", default=list(config_lib.METHODS),
+                    choices=list(config_lib.METHODS), help="the paper's methods to run (default: all)")
     ap.add_argument("--ppo-multipliers", type=float, nargs="+", default=[1, 10])
     ap.add_argument("--eval-episodes", type=int, default=20, help="per seed, for success")
     ap.add_argument("--hold-time", type=float, default=1.0, help="s upright at the end (success)")
@@ -322,7 +325,7 @@ def main(argv=None):
         results, timings = load_methods(run_dir)
     else:
         run_dir = os.path.join(args.out, f"gp_{preset}")
-        run_methods(preset, args.seeds, overrides, run_dir)
+        run_methods(preset, args.seeds, overrides, run_dir, args.methods)
         results, timings = load_methods(run_dir)
     methods = [str(m) for m in results["methods"]]
     seeds = [int(s) for s in results["seeds"]]

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-ARGS = ["reproduce", "--preset", "tiny", "--seeds", "4", "--methods", "reinforce", "gp_pg",
+ARGS = ["reproduce", "--preset", "tiny", "--seeds", "4", "--methods", "gp_pg",
         "--chunk-size", "2"]
 FIELDS = ("mean_reward", "grad_norm", "exploration_std", "num_basis_vectors", "gp_guard")
 
@@ -61,7 +61,7 @@ def test_interrupted_processes_resume_from_a_common_checkpoint(tmp_path):
     out = tmp_path / "run"
     first = _two_processes(out, "--max-chunks", "2")
     assert "stopped early" in first[0][0]
-    os.remove(out / "checkpoint_reinforce.process1-of-2.npz")  # its .prev (1 chunk) remains
+    os.remove(out / "checkpoint_gp_pg.process1-of-2.npz")  # its .prev (1 chunk) remains
     _two_processes(out)
     _one_process_two_devices(tmp_path / "single")
     a, b = np.load(out / "results.npz"), np.load(tmp_path / "single" / "results.npz")

@@ -197,7 +197,7 @@ def test_two_host_devices_equal_one(tmp_path):
     for n, seeds, loop in ((2, 4, "auto"), (1, 4, "auto"), (2, 4, "vmap")):
         out = tmp_path / f"dev{n}_seeds{seeds}_{loop}"
         cmd = [sys.executable, "-m", "gpguided_jax.cli", "reproduce", "--preset", "tiny",
-               "--seeds", str(seeds), "--methods", "reinforce", "guided_variance", "--devices",
+               "--seeds", str(seeds), "--methods", "guided_variance", "--devices",
                str(n), "--chunk-size", "3", "--seed-loop", loop, "--out", str(out)]
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
         assert proc.returncode == 0, proc.stderr[-3000:]
