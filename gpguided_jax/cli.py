@@ -70,11 +70,10 @@ def lapack_threads(environ, lapack_loaded: bool) -> str | None:
     JAX's CPU LAPACK calls (the hyperparameter fit's Cholesky and triangular solves) go to the
     OpenBLAS that SciPy bundles, which by default starts one thread per core for every call. With
     one JAX device per core, every device makes such calls at the same time and the threads
-    oversubscribe the cores: the paper preset's 10-seed fit took 21 s on 2 cores, and 10.5 s with
-    one OpenBLAS thread (2026-12-02). On one device one thread is no slower for these 500 x 500
-    matrices (ten likelihood gradients one after another: 128 ms against 176 ms with two). One
-    thread also makes the LAPACK results independent of the machine's core count and of the
-    device count (OpenBLAS's rounding depends on its thread count).
+    oversubscribe the cores: the paper preset's 10-seed fit takes about twice as long as with one
+    thread (experiments/bench_lapack_threads.py, docs/results/lapack_threads.json). One thread
+    also makes the LAPACK results independent of the machine's core count and of the device count
+    (OpenBLAS's rounding depends on its thread count).
     None when the user has set any of `LAPACK_THREAD_VARIABLES`, or when SciPy's LAPACK is
     already loaded (OpenBLAS reads the variable when it loads)."""
     if lapack_loaded or any(v in environ for v in LAPACK_THREAD_VARIABLES):
@@ -84,7 +83,7 @@ def lapack_threads(environ, lapack_loaded: bool) -> str | None:
 
 def single_threaded_lapack() -> None:
     """Sets OPENBLAS_NUM_THREADS=1 for this process (see `lapack_threads`); call it before JAX's
-    first LAPACK call, as `_set_cpu_devices` does."""
+    first LAPACK call, as `main` does before anything else."""
     threads = lapack_threads(os.environ, "scipy.linalg" in sys.modules)
     if threads is not None:
         os.environ["OPENBLAS_NUM_THREADS"] = threads

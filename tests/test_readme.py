@@ -306,8 +306,12 @@ def test_benchmark_comparison_with_the_previous_run_quotes_both_files():
     m = re.search(r"this hour the NumPy loop took ([\d.]+) ms per\s+update against ([\d.]+) ms, and gp_pg's "
                   r"run ([\d.]+) s against ([\d.]+) s", text)
     assert m, "NumPy-loop comparison not found"
-    per_update = lambda b: b["train"]["numpy_gp_pg"]["seconds_per_update_one_seed"] * 1e3  # noqa: E731
-    gp_run = lambda b: b["train"]["methods"]["gp_pg"]["run_s"]["median"]  # noqa: E731
+    def per_update(b):  # ms
+        return b["train"]["numpy_gp_pg"]["seconds_per_update_one_seed"] * 1e3
+
+    def gp_run(b):
+        return b["train"]["methods"]["gp_pg"]["run_s"]["median"]
+
     assert [float(x) for x in m.groups()] == [round(per_update(new), 1), round(per_update(old), 1),
                                              round(gp_run(new), 1), round(gp_run(old), 1)]
     new_ratio = new["train"]["numpy_gp_pg"]["ratio_jax_over_numpy"]
