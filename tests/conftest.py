@@ -10,6 +10,9 @@
   tests compile (the same tiny preset, resumed runs, repeated CLI runs) is compiled once. The
   cache gives the same results bit for bit (`test_a_repeated_run_loads_its_programs_from_the_
   compile_cache`), and the tests never write to the user's own cache in ~/.cache.
+* `make test` runs `--dist loadgroup`, so that the tests of one `xdist_group` share their
+  session fixtures on one worker; a run where xdist's grouping was lost stops at collection
+  (`pytest_collection_modifyitems` below).
 """
 
 import os
@@ -20,6 +23,7 @@ _CACHE = os.path.join(tempfile.gettempdir(), "gpguided-tests-xla-"
 os.environ["GPGUIDED_COMPILE_CACHE"] = _CACHE  # before the CLI module reads it
 
 import jax  # noqa: E402
+import pytest  # noqa: E402
 
 import gpguided_jax  # noqa: E402
 from gpguided_jax import cli  # noqa: E402
@@ -28,6 +32,29 @@ cli.single_threaded_lapack()
 gpguided_jax.enable_x64()
 jax.config.update("jax_compilation_cache_dir", _CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+
+
+_UNGROUPED = []  # xdist_group tests that this worker's xdist failed to group
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config, items):
+    """In an xdist worker under `--dist loadgroup`, every test with an `xdist_group` mark must have
+    the group appended to its node id (``...@group``): that suffix is all xdist's scheduler groups
+    by. pytest 9.2 ignores xdist 3.8's way of appending it (pytest-dev/pytest-xdist#1386, hence
+    `pytest<9.2` in pyproject.toml), and the groups were split over the workers without a word,
+    each worker computing the shared fixtures again (the suite took a minute longer). Such tests
+    now fail, saying why (an error raised here, in a worker, is not shown)."""
+    if getattr(config.option, "loadgroup", False):  # set by xdist, in its workers only
+        _UNGROUPED.extend(item.nodeid for item in items
+                          if item.get_closest_marker("xdist_group") and "@" not in item.nodeid)
+
+
+def pytest_runtest_setup(item):
+    if item.nodeid in _UNGROUPED:
+        pytest.fail("--dist loadgroup: pytest-xdist did not group this test's xdist_group; this "
+                    "pytest/xdist pair loses the groups (pytest-dev/pytest-xdist#1386): install "
+                    "the pytest that requirements.lock pins", pytrace=False)
 
 
 def pytest_sessionfinish(session, exitstatus):
