@@ -16,6 +16,8 @@
 """
 
 import os
+import subprocess
+import sys
 import tempfile
 
 _CACHE = os.path.join(tempfile.gettempdir(), "gpguided-tests-xla-"
@@ -32,6 +34,25 @@ cli.single_threaded_lapack()
 gpguided_jax.enable_x64()
 jax.config.update("jax_compilation_cache_dir", _CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+# The reference run of the multi-device tests (tests/test_distributed.py, test_train.py's
+# test_two_host_devices_equal_one): the tiny preset's gp_pg, 4 seeds in chunks of 2.
+TWO_DEVICE_ARGS = ["reproduce", "--preset", "tiny", "--seeds", "4", "--methods", "gp_pg",
+                   "--chunk-size", "2"]
+
+
+@pytest.fixture(scope="session")
+def two_device_run(tmp_path_factory):
+    """`gpguided reproduce` (TWO_DEVICE_ARGS) in one process with two host CPU devices, run once
+    for the tests of the xdist group "two_devices"; returns its --out directory."""
+    out = tmp_path_factory.mktemp("two_device_run")
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    proc = subprocess.run([sys.executable, "-m", "gpguided_jax.cli", *TWO_DEVICE_ARGS, "--out",
+                           str(out)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return out
 
 
 _UNGROUPED = []  # xdist_group tests that this worker's xdist failed to group

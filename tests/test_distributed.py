@@ -7,10 +7,10 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
+from conftest import ROOT, TWO_DEVICE_ARGS
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-ARGS = ["reproduce", "--preset", "tiny", "--seeds", "4", "--methods", "gp_pg",
-        "--chunk-size", "2"]
+pytestmark = pytest.mark.xdist_group("two_devices")  # they share the fixture two_device_run
 FIELDS = ("mean_reward", "grad_norm", "exploration_std", "num_basis_vectors", "gp_guard")
 
 
@@ -21,7 +21,7 @@ def _free_port() -> int:
 
 
 def _cli(out, *extra):
-    return [sys.executable, "-m", "gpguided_jax.cli", *ARGS, "--out", str(out), *extra]
+    return [sys.executable, "-m", "gpguided_jax.cli", *TWO_DEVICE_ARGS, "--out", str(out), *extra]
 
 
 def _two_processes(out, *extra):
@@ -36,25 +36,18 @@ def _two_processes(out, *extra):
     return outs
 
 
-def _one_process_two_devices(out):
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
-    proc = subprocess.run(_cli(out), cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-
-
-def test_two_processes_equal_one_process(tmp_path):
+def test_two_processes_equal_one_process(tmp_path, two_device_run):
     """The same results.npz (bitwise) from 2 processes x 1 device as from 1 process x 2 devices;
     only process 0 prints the tables and writes the results."""
     _two_processes(tmp_path / "multi")
-    _one_process_two_devices(tmp_path / "single")
-    a, b = np.load(tmp_path / "multi" / "results.npz"), np.load(tmp_path / "single" / "results.npz")
+    a, b = np.load(tmp_path / "multi" / "results.npz"), np.load(two_device_run / "results.npz")
     for k in FIELDS:
         np.testing.assert_array_equal(a[k], b[k])
     files = set(os.listdir(tmp_path / "multi"))
     assert {"checkpoint_gp_pg.process0-of-2.npz", "checkpoint_gp_pg.process1-of-2.npz"} <= files
 
 
-def test_interrupted_processes_resume_from_a_common_checkpoint(tmp_path):
+def test_interrupted_processes_resume_from_a_common_checkpoint(tmp_path, two_device_run):
     """Both processes stop after 2 of 3 chunks; then process 1 loses its latest checkpoint (as if
     killed between the two processes' writes). The resumed run agrees on the checkpoint both hold
     and ends with the uninterrupted run's results."""
@@ -63,7 +56,6 @@ def test_interrupted_processes_resume_from_a_common_checkpoint(tmp_path):
     assert "stopped early" in first[0][0]
     os.remove(out / "checkpoint_gp_pg.process1-of-2.npz")  # its .prev (1 chunk) remains
     _two_processes(out)
-    _one_process_two_devices(tmp_path / "single")
-    a, b = np.load(out / "results.npz"), np.load(tmp_path / "single" / "results.npz")
+    a, b = np.load(out / "results.npz"), np.load(two_device_run / "results.npz")
     for k in FIELDS:
         np.testing.assert_array_equal(a[k], b[k])

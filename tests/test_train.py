@@ -181,31 +181,35 @@ def test_resume_equals_uninterrupted(tmp_path):
     assert (tmp_path / "full" / "fig5_reward.png").exists()
 
 
-def test_two_host_devices_equal_one(tmp_path):
+@pytest.mark.xdist_group("two_devices")  # shares two_device_run with tests/test_distributed.py
+def test_two_host_devices_equal_one(tmp_path, two_device_run):
     """Runs the CLI in subprocesses with 2 forced host CPU devices.
 
-    Seeds 0-3 sharded over 2 devices vs the same seeds on one device. On a CPU each device runs
-    its seeds one after another (``--seed-loop auto`` = map), so a seed's result does not depend
-    on the device count: the results are asserted bitwise equal (that it does not depend on its
-    batch-mates either: `test_per_seed_program_map_equals_one_seed_alone`). With ``--seed-loop vmap`` (what an
-    accelerator runs) XLA compiles the batch differently and last-ulp differences (~2.5e-9
-    relative after 6 updates) grow through training (to ~1e-5 in the gradient norm); there
-    agreement is asserted at 1e-4 relative, far below any difference between seeds (~1e-1).
+    Seeds 0-3 sharded over 2 devices (`two_device_run`) vs the same seeds on one device. On a CPU
+    each device runs its seeds one after another (``--seed-loop auto`` = map), so a seed's result
+    does not depend on the device count: the results are asserted bitwise equal (that it does not
+    depend on its batch-mates either: `test_per_seed_program_map_equals_one_seed_alone`). With
+    ``--seed-loop vmap`` (what an accelerator runs) XLA compiles the batch differently and
+    last-ulp differences (~2.5e-9 relative after 6 updates) grow through training (to ~1e-5 in
+    the gradient norm); there agreement is asserted at 1e-4 relative, far below any difference
+    between seeds (~1e-1).
     """
+    from conftest import TWO_DEVICE_ARGS
+
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
-    outs = {}
-    for n, seeds, loop in ((2, 4, "auto"), (1, 4, "auto"), (2, 4, "vmap")):
-        out = tmp_path / f"dev{n}_seeds{seeds}_{loop}"
-        cmd = [sys.executable, "-m", "gpguided_jax.cli", "reproduce", "--preset", "tiny",
-               "--seeds", str(seeds), "--methods", "guided_variance", "--devices",
-               str(n), "--chunk-size", "3", "--seed-loop", loop, "--out", str(out)]
+    outs = {(2, "auto"): two_device_run}
+    for n, loop in ((1, "auto"), (2, "vmap")):
+        out = outs[n, loop] = tmp_path / f"dev{n}_{loop}"
+        cmd = [sys.executable, "-m", "gpguided_jax.cli", *TWO_DEVICE_ARGS, "--devices", str(n),
+               "--seed-loop", loop, "--out", str(out)]
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
         assert proc.returncode == 0, proc.stderr[-3000:]
-        outs[n, seeds, loop] = np.load(out / "results.npz")
+    for (n, loop), out in outs.items():
         config = json.loads((out / "config.json").read_text())
         assert len(config["devices"]) == n and config["devices"][-1] == f"TFRT_CPU_{n - 1}"
         assert config["seed_loop"] == ("map" if loop == "auto" else loop)
-    two, one_all, batched = outs[2, 4, "auto"], outs[1, 4, "auto"], outs[2, 4, "vmap"]
+    two, one_all, batched = (np.load(outs[k] / "results.npz")
+                             for k in ((2, "auto"), (1, "auto"), (2, "vmap")))
     for k in ("mean_reward", "exploration_std", "grad_norm", "num_basis_vectors", "gp_guard"):
         np.testing.assert_array_equal(one_all[k], two[k])
         np.testing.assert_allclose(batched[k], two[k], rtol=1e-4, atol=1e-9)
