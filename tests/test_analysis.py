@@ -1,20 +1,18 @@
 """Tests of gpguided_jax.analysis (coverage, GP surfaces) and the Fig. 2/4 + coverage script."""
 
 import csv
-import importlib.util
 import json
 import math
-import pathlib
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import run_script
 from scipy import stats
 
 from gpguided_jax import analysis, controllers, kernels, sparse_gp
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
 SMALL = dict(num_angle_bins=4, num_velocity_bins=2, max_velocity=8.0)
 
 # Hand-computed on a 4 x 2 grid (angle bins of pi/2; velocity bins [-8, 0) and [0, 8]):
@@ -87,12 +85,9 @@ def test_t_interval():
 
 
 def test_figure_script_runs_end_to_end(tmp_path):
-    spec = importlib.util.spec_from_file_location(
-        "fig2_fig4_coverage", ROOT / "experiments" / "fig2_fig4_coverage.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
-    script.main(["--preset", "tiny", "--seeds", "2", "--num-updates", "2", "--checkpoints", "2",
-                 "--eval-episodes", "2", "--grid", "7", "--out", str(tmp_path)])
+    run_script(["experiments/fig2_fig4_coverage.py", "--preset", "tiny", "--seeds", "2",
+                "--num-updates", "2", "--checkpoints", "2", "--eval-episodes", "2", "--grid", "7",
+                "--out", tmp_path])
     for name in ("fig2_variance.png", "fig4_value.png", "coverage.png", "fig2_variance.csv",
                  "fig4_value.csv", "coverage.csv", "coverage.json", "visited_states.csv",
                  "results.npz"):

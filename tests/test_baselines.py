@@ -1,13 +1,13 @@
 """Baselines: brax PPO on the pendulum, the swing-up success criterion, the comparison script."""
 
-import importlib.util
+import csv
 import math
-import pathlib
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import run_script
 
 from gpguided_jax import baselines, pendulum
 
@@ -82,6 +82,8 @@ def test_matched_budget_value():
 
 
 def test_train_ppo_tiny_budget_returns_finite_curve():
+    """brax's own PPO trainer (`ppo.train`) on `brax_env.PendulumEnv`, through `train_ppo`: the
+    environment's brax interface end to end (it was a test of its own in test_brax_env.py)."""
     params = pendulum.make_params(start_mean=(math.pi - 0.5, 0.0), start_std=(0.1, 0.1))
     per_iter = baselines.ppo_steps_per_iteration(4, 10, 4, 2)
     result = baselines.train_ppo(
@@ -102,6 +104,7 @@ def test_train_ppo_tiny_budget_returns_finite_curve():
     assert result.reward_per_step.shape == (3,)
     assert np.all(np.isfinite(result.reward_per_step)) and np.all(result.reward_per_step < 0.5)
     assert result.wall_time > 0
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(result.params))
     rate = baselines.ppo_success_rate(
         jax.random.PRNGKey(1), result, params, 20, 3, deterministic=True, hold_time=0.02
     )
@@ -122,44 +125,23 @@ def test_train_sac_tiny_budget_returns_finite_curve_and_success():
 
 
 def test_compare_ppo_end_to_end(tmp_path):
-    path = pathlib.Path(__file__).parent.parent / "experiments" / "compare_ppo.py"
-    spec = importlib.util.spec_from_file_location("compare_ppo", path)
-    compare = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(compare)
     # one seed and two of the methods: every run compiles its own program (PPO ~20 s on a 2-core
     # CPU); the other methods go through the same code
-    out = compare.main(
-        [
-            "--preset",
-            "tiny",
-            "--seeds",
-            "0",
-            "--methods",
-            "reinforce",
-            "guided_variance",
-            "--num-updates",
-            "2",
-            "--ppo-multipliers",
-            "1",
-            "--eval-episodes",
-            "2",
-            "--hold-time",
-            "0.04",
-            "--out",
-            str(tmp_path),
-        ]
-    )
-    assert pathlib.Path(out["figure"]).stat().st_size > 0
-    md = pathlib.Path(out["markdown"]).read_text()
+    run_script(["experiments/compare_ppo.py", "--preset", "tiny", "--seeds", "0", "--methods",
+                "reinforce", "guided_variance", "--num-updates", "2", "--ppo-multipliers", "1",
+                "--eval-episodes", "2", "--hold-time", "0.04", "--out", tmp_path])
+    assert (tmp_path / "compare_tiny.png").stat().st_size > 0
+    md = (tmp_path / "compare_tiny.md").read_text()
     for name in ("reinforce", "guided_variance", "PPO", "success"):
         assert name in md, name
     assert "gp_pg" not in md and "guided_direction" not in md
-    labels = [r["method"] for r in out["rows"]]
-    assert len(labels) == 3
+    with open(tmp_path / "compare_tiny.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["method"] for r in rows] == ["reinforce", "guided_variance", "PPO (80 steps)"]
     assert (tmp_path / "success_tiny.csv").exists()
     with np.load(tmp_path / "ppo_tiny.npz") as f:
         budget = int(f["budgets"][0])
         assert budget == 2 * 2 * 20  # num_updates x episodes_per_update x episode_length
         assert f[f"curves_{budget}"].shape == (1, 2) and np.all(np.isfinite(f[f"curves_{budget}"]))
-    for r in out["rows"]:
-        assert np.isfinite(r["wall_s"]) and r["wall_s"] > 0
+    for r in rows:
+        assert np.isfinite(float(r["wall_s"])) and float(r["wall_s"]) > 0

@@ -1,18 +1,13 @@
 """Smoke tests of the benchmark scripts at tiny sizes, so that an API change cannot rot them."""
 
 import json
-import os
-import subprocess
-import sys
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from conftest import run_script
 
 
-def _run(args):
-    proc = subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True,
-                          timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return json.loads(proc.stdout)
+def _run(args, **kw):
+    """The script's JSON; it compiles fast (`conftest.fast_compile_env`) unless told otherwise."""
+    return json.loads(run_script(args, **kw).stdout)
 
 
 def test_bench_train_tiny_prints_json_with_a_ratio():
@@ -54,6 +49,6 @@ def test_bench_gp_step_block_update_agrees_with_the_pair_by_pair_loop():
 
 def test_compile_cache_check_round_trips_a_program():
     out = _run(["experiments/compile_cache_check.py", "--presets", "tiny", "--methods", "reinforce",
-                "--synthetic", "2"])
+                "--synthetic", "2"], fast_compile=False)  # the cache as a user's run fills it
     assert out["all_shipped_programs_load"] and out["programs"][0]["cold"]["kernels"] > 0
     assert out["synthetic"][0]["loads"]

@@ -8,16 +8,17 @@ The kernel is the Python running pytest: a kernelspec pointing at `sys.executabl
 temporary directory and looked up there, so no `ipykernel install` is needed on a fresh machine.
 
 At the reduced size the notebooks spend most of their time compiling, so the kernel runs XLA's CPU
-backend at optimisation level 0 (compiles about 2-3x faster; the tiny runs do not notice the slower
-code). This is for the test only: the notebooks themselves run with JAX's defaults.
+backend at optimisation level 0 (`conftest.fast_compile_env`; compiles about 2-3x faster; the tiny
+runs do not notice the slower code). This is for the test only: the notebooks themselves run with
+JAX's defaults.
 """
 
 import json
-import os
 import pathlib
 import sys
 
 import pytest
+from conftest import fast_compile_env
 
 jupytext = pytest.importorskip("jupytext")
 nbclient = pytest.importorskip("nbclient")
@@ -29,7 +30,6 @@ NOTEBOOK_DIR = pathlib.Path(__file__).resolve().parent.parent / "notebooks"
 NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("[0-9][0-9]_*.py"))
 KERNEL_NAME = "gpguided-notebook-test"
 CELL_TIMEOUT_S = 300  # generous: the tests may run in parallel on a loaded 2-core machine
-FAST_COMPILE_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +44,7 @@ def kernel_spec_manager(tmp_path_factory):
         "env": {
             "GPGUIDED_NOTEBOOK_QUICK": "1",
             "MPLBACKEND": "Agg",
-            "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} {FAST_COMPILE_XLA_FLAGS}".strip(),
+            "XLA_FLAGS": fast_compile_env()["XLA_FLAGS"],
         },
     }
     (spec_dir / "kernel.json").write_text(json.dumps(spec))
