@@ -10,11 +10,12 @@
   tests compile (the same tiny preset, resumed runs, repeated CLI runs) is compiled once. The
   cache gives the same results bit for bit (`test_a_repeated_run_loads_its_programs_from_the_
   compile_cache`), and the tests never write to the user's own cache in ~/.cache.
-* The tests that run an experiment script or a notebook end to end at tiny sizes (plumbing:
-  files, shapes, finiteness) run it in a subprocess whose XLA CPU backend compiles at
-  optimisation level 0 (`fast_compile_env`): they spend most of their time compiling, which
-  that makes 1.6x faster (fig2_fig4_coverage.py's test: 35.6 s against 22.4 s). The library's own
-  tests compile as a user's run does.
+* The tests that run an experiment script, a notebook or the command line end to end at tiny
+  sizes (plumbing: files, shapes, finiteness, and runs that must agree with each other, all
+  compiled alike) run it in a subprocess whose XLA CPU backend compiles at optimisation level 0
+  (`fast_compile_env`): they spend most of their time compiling, which that makes 1.3-1.6x
+  faster (fig2_fig4_coverage.py's test: 35.6 s against 22.4 s). The library's in-process tests
+  and the compile-cache test compile as a user's run does.
 * `make test` runs `--dist loadgroup`, so that the tests of one `xdist_group` share their
   session fixtures on one worker; a run where xdist's grouping was lost stops at collection
   (`pytest_collection_modifyitems` below).
@@ -74,7 +75,7 @@ def two_device_run(tmp_path_factory):
     """`gpguided reproduce` (TWO_DEVICE_ARGS) in one process with two host CPU devices, run once
     for the tests of the xdist group "two_devices"; returns its --out directory."""
     out = tmp_path_factory.mktemp("two_device_run")
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env = fast_compile_env(XLA_FLAGS="--xla_force_host_platform_device_count=2")
     proc = subprocess.run([sys.executable, "-m", "gpguided_jax.cli", *TWO_DEVICE_ARGS, "--out",
                            str(out)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]

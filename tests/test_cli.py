@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import fast_compile_env
 
 from gpguided_jax import cli
 from gpguided_jax import reproduce as R
@@ -110,7 +111,8 @@ def test_cli_runs_in_float32(tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "gpguided_jax.cli", "reproduce", "--preset", "tiny", "--seeds", "2",
          "--methods", "reinforce", "guided_variance", "--dtype", "float32", "--chunk-size", "3",
-         "--out", str(out)], capture_output=True, text=True, timeout=600, cwd=ROOT)
+         "--out", str(out)], capture_output=True, text=True, timeout=600, cwd=ROOT,
+        env=fast_compile_env())
     _check_cli_run(proc, out, "float32", "guided_variance")
 
 

@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import ROOT, TWO_DEVICE_ARGS
+from conftest import ROOT, TWO_DEVICE_ARGS, fast_compile_env
 
 pytestmark = pytest.mark.xdist_group("two_devices")  # they share the fixture two_device_run
 FIELDS = ("mean_reward", "grad_norm", "exploration_std", "num_basis_vectors", "gp_guard")
@@ -28,7 +28,8 @@ def _two_processes(out, *extra):
     port = _free_port()
     procs = [subprocess.Popen(_cli(out, "--coordinator", f"localhost:{port}", "--num-processes", "2",
                                    "--process-id", str(i), *extra),
-                              cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                              cwd=ROOT, env=fast_compile_env(), stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True)
              for i in range(2)]
     outs = [p.communicate(timeout=300) for p in procs]
     for p, (_, e) in zip(procs, outs):

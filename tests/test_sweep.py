@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import fast_compile_env
 
 from gpguided_jax import cli
 from gpguided_jax import sweep as S
@@ -108,7 +109,7 @@ def test_cli_sweep_in_a_subprocess(tmp_path):
     cmd = [sys.executable, "-m", "gpguided_jax.cli", "sweep", "--param", "lr", "--values", "1e-4",
            "1e-3", "1e-2", "--method", "reinforce", "--preset", "tiny", "--seeds", "2",
            "--num-updates", "2", "--out", str(out)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=fast_compile_env())
     assert proc.returncode == 0, proc.stderr
     assert "| learning_rate |" in proc.stdout
     assert "[sweep learning_rate] done in" in proc.stderr

@@ -1,7 +1,6 @@
 """End-to-end tests of Algorithm 1 (gpguided_jax.train) and the chunked reproduce driver."""
 
 import json
-import os
 import subprocess
 import sys
 
@@ -10,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from conftest import TWO_DEVICE_ARGS, fast_compile_env
 
 from gpguided_jax import config as C
 from gpguided_jax import reproduce as R
@@ -194,9 +194,7 @@ def test_two_host_devices_equal_one(tmp_path, two_device_run):
     the gradient norm); there agreement is asserted at 1e-4 relative, far below any difference
     between seeds (~1e-1).
     """
-    from conftest import TWO_DEVICE_ARGS
-
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env = fast_compile_env(XLA_FLAGS="--xla_force_host_platform_device_count=2")  # as the reference
     outs = {(2, "auto"): two_device_run}
     for n, loop in ((1, "auto"), (2, "vmap")):
         out = outs[n, loop] = tmp_path / f"dev{n}_{loop}"
