@@ -33,6 +33,41 @@ DEFAULT_COMPILE_CACHE = os.environ.get(
     "GPGUIDED_COMPILE_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "gpguided_jax", "xla"))
 
 
+class CompileCacheCounter:
+    """Counts, from JAX's monitoring events in this process, the programs looked up in the
+    persistent compilation cache, those loaded from it, and those written to it.
+
+    A program that is looked up and not loaded was compiled (it is written unless it compiled
+    faster than jax_persistent_cache_min_compile_time_secs). The counts tell whether a repeated
+    run really loaded its programs, which the cache's own log does not say."""
+
+    _EVENTS = {"/jax/compilation_cache/compile_requests_use_cache": "requests",
+               "/jax/compilation_cache/cache_hits": "loaded",
+               "/jax/compilation_cache/cache_misses": "written"}  # recorded on writing an entry
+
+    def __init__(self):
+        self.requests = self.loaded = self.written = 0
+
+    def __call__(self, event: str, **kwargs) -> None:
+        name = self._EVENTS.get(event)
+        if name is not None:
+            setattr(self, name, getattr(self, name) + 1)
+
+    def summary(self, path: str, min_compile_s: float) -> str:
+        line = (f"compilation cache: {self.loaded} of {self.requests} program(s) loaded from {path}, "
+                f"{self.requests - self.loaded} compiled, {self.written} of them written to it "
+                f"(those that took over {min_compile_s:g} s to compile)")
+        if self.loaded:
+            line += (". XLA:CPU may log 'Target machine feature +prefer-no-gather is not supported "
+                     "on the host machine ... SIGILL' for each program it loads: on CPUs whose "
+                     "LLVM tuning sets these preferences (seen on AMD Zen 4) that is a false "
+                     "alarm, openxla/xla#44565; the programs loaded are the ones compiled here")
+        return line
+
+
+_COMPILE_CACHE: tuple[str, CompileCacheCounter] | None = None  # (directory, counter) once set
+
+
 def _set_compile_cache(path: str | None) -> None:
     """JAX's persistent compilation cache: a repeated run loads its compiled programs instead of
     compiling them again. 'none' turns it off.
@@ -40,18 +75,34 @@ def _set_compile_cache(path: str | None) -> None:
     With jax 0.9.2 on CPU every program this project compiles loads correctly (and computes the
     same results bit for bit), but loading a much larger cached program crashes the process
     (experiments/compile_cache_check.py). The cache directory is therefore named in the log, and
-    `faulthandler` is on, so that such a crash says where it happened and how to avoid it."""
+    `faulthandler` is on, so that such a crash says where it happened and how to avoid it. At the
+    end the command says how many programs it loaded and compiled (`CompileCacheCounter`)."""
+    global _COMPILE_CACHE
     if path and path.lower() != "none":
         import faulthandler
 
         import jax
+        import jax.monitoring
 
         os.makedirs(path, exist_ok=True)
         jax.config.update("jax_compilation_cache_dir", path)
         if not faulthandler.is_enabled():
             faulthandler.enable()
+        if _COMPILE_CACHE is None:
+            counter = CompileCacheCounter()
+            jax.monitoring.register_event_listener(counter)
+            _COMPILE_CACHE = (path, counter)
         print(f"compilation cache: {path} ('--compile-cache none' turns it off)", file=sys.stderr,
               flush=True)
+
+
+def _report_compile_cache() -> None:
+    if _COMPILE_CACHE is not None:
+        import jax
+
+        path, counter = _COMPILE_CACHE
+        print(counter.summary(path, jax.config.jax_persistent_cache_min_compile_time_secs),
+              file=sys.stderr, flush=True)
 
 
 def available_cores() -> int:
@@ -204,6 +255,7 @@ def _cmd_reproduce(args) -> int:
         max_chunks=args.max_chunks,
         seed_loop=args.seed_loop,
     )
+    _report_compile_cache()
     if not out["complete"]:
         print(f"stopped early (--max-chunks); run the same command again to resume from {args.out}")
         return 0
@@ -267,6 +319,7 @@ def _cmd_sweep(args) -> int:
         )
     except (ValueError, TypeError) as e:
         raise SystemExit(f"gpguided sweep: error: {e}") from None
+    _report_compile_cache()
     paths = sweep.write_sweep(result, out_dir, preset=args.preset)
     print(sweep.sweep_markdown(result))
     for p in paths.values():

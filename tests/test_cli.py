@@ -2,6 +2,7 @@
 corrupt files in --out, atomic writes, and that importing the package leaves JAX's x64 flag alone."""
 
 import os
+import re
 import subprocess
 import sys
 
@@ -150,14 +151,38 @@ def test_a_repeated_run_loads_its_programs_from_the_compile_cache(tmp_path):
             [sys.executable, "-m", "gpguided_jax.cli", "reproduce", "--preset", "tiny", "--seeds",
              "2", "--methods", "reinforce", "guided_direction", "--chunk-size", "3", "--out",
              str(tmp_path / name), "--compile-cache", str(cache)],
-            capture_output=True, text=True, timeout=600, cwd=ROOT)
+            capture_output=True, text=True, timeout=600, cwd=ROOT,
+            # every program cached: with JAX's default (programs that took over 1 s to compile),
+            # one that took 0.9 s in the first run and 1.1 s in the second was written only then
+            env=dict(os.environ, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0"))
         _check_cli_run(proc, tmp_path / name, "float64", "guided_direction")  # the float64 CLI run
         assert f"compilation cache: {cache}" in proc.stderr
-        return {p: os.stat(cache / p).st_mtime_ns for p in os.listdir(cache)}
+        counts = re.search(r"compilation cache: (\d+) of (\d+) program\(s\) loaded from .*?, "
+                           r"(\d+) compiled, (\d+) of them written", proc.stderr)
+        assert counts, proc.stderr[-3000:]
+        loaded, requests, compiled, written = map(int, counts.groups())
+        assert loaded + compiled == requests and compiled == written  # every program is cached
+        return {p: os.stat(cache / p).st_mtime_ns for p in os.listdir(cache)}, requests, loaded
 
-    entries = run("cold")
+    entries, cold_requests, _ = run("cold")
     assert entries, "nothing was written to the compilation cache"
-    assert run("warm") == entries  # loaded: a program compiled again would be written again
+    warm_entries, warm_requests, warm_loaded = run("warm")
+    assert warm_entries == entries  # a program compiled again would be written again
+    assert warm_loaded == warm_requests == cold_requests  # JAX's own count: every one loaded
     with np.load(tmp_path / "cold" / "results.npz") as a, np.load(tmp_path / "warm" / "results.npz") as b:
         for k in R.RECORD_FIELDS:
             np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_compile_cache_counter_counts_jax_monitoring_events():
+    """The counts behind the command's last line on the cache, from JAX's event names."""
+    counter = cli.CompileCacheCounter()
+    for event in ["/jax/compilation_cache/compile_requests_use_cache"] * 5 + [
+            "/jax/compilation_cache/cache_hits"] * 2 + ["/jax/compilation_cache/cache_misses",
+                                                        "/jax/some_other_event"]:
+        counter(event)
+    assert (counter.requests, counter.loaded, counter.written) == (5, 2, 1)
+    line = counter.summary("/c", 1.0)
+    assert line.startswith("compilation cache: 2 of 5 program(s) loaded from /c, 3 compiled, 1 of")
+    assert "openxla/xla#44565" in line  # programs were loaded: the loader's false alarm explained
+    assert "44565" not in cli.CompileCacheCounter().summary("/c", 1.0)
