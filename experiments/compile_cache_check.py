@@ -1,7 +1,9 @@
 """Does JAX's persistent compilation cache work on this CPU with the pinned jax? Each program is
 compiled in a fresh process with an empty cache directory, then loaded from that cache by a second
-fresh process (what a repeated `gpguided reproduce` does), and the second process's exit status
-and compile-or-load time are recorded.
+fresh process (what a repeated `gpguided reproduce` does); the second process's exit status,
+compile-or-load time and JAX's count of programs loaded from the cache are recorded (XLA:CPU
+logs a warning about "+prefer-no-gather" on every load on some CPUs, openxla/xla#44565, and
+elsewhere rejects the load and compiles again: `loads` needs the count, not only exit 0).
 
 Two kinds of program:
 
@@ -31,6 +33,10 @@ import tempfile
 CHILD = r"""
 import re, sys, time
 import jax
+import jax.monitoring
+hits = []  # JAX's own event for a program loaded from the persistent cache
+jax.monitoring.register_event_listener(
+    lambda event, **kw: hits.append(1) if event == "/jax/compilation_cache/cache_hits" else None)
 jax.config.update("jax_compilation_cache_dir", sys.argv[1])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 import gpguided_jax
@@ -55,27 +61,31 @@ compiled = lowered.compile()
 seconds = time.perf_counter() - t0
 text = compiled.as_text()
 kernels = len(re.findall(r"= [^ ]+ (?:fusion|dot|custom-call)\(", text))
-print("RESULT", seconds, kernels, flush=True)
+print("RESULT", seconds, kernels, len(hits), flush=True)
 """
 
 
 def _child(cache: str, *args: str) -> dict:
     proc = subprocess.run([sys.executable, "-c", CHILD, cache, *args], capture_output=True,
                           text=True, timeout=900)
-    found = re.search(r"RESULT ([\d.e+-]+) (\d+)", proc.stdout)
+    found = re.search(r"RESULT ([\d.e+-]+) (\d+) (\d+)", proc.stdout)
     out = {"returncode": proc.returncode}
     if found:
-        out.update(seconds=float(found.group(1)), kernels=int(found.group(2)))
+        out.update(seconds=float(found.group(1)), kernels=int(found.group(2)),
+                   cache_hits=int(found.group(3)))
     return out
 
 
 def round_trip(*args: str) -> dict:
-    """Compiles in one process (empty cache), loads in a second (the cache it filled)."""
+    """Compiles in one process (empty cache), loads in a second (the cache it filled). It loads
+    if both exit 0 and JAX counts the second's program as loaded from the cache: a load that XLA
+    rejected would compile the program again and still exit 0 (jax-ml/jax#38445)."""
     with tempfile.TemporaryDirectory() as cache:
         cold = _child(cache, *args)
         warm = _child(cache, *args)
     return {"cold": cold, "warm": warm,
-            "loads": cold["returncode"] == 0 and warm["returncode"] == 0}
+            "loads": cold["returncode"] == 0 and warm["returncode"] == 0
+            and warm.get("cache_hits", 0) > 0}
 
 
 def main(argv=None) -> int:
