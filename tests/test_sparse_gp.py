@@ -21,6 +21,10 @@ SF2, SN2 = 1.4, 0.05
 EXACT = dict(noise_novelty=0.0, collapse_fraction=1e-30)  # every point joins (with novelty_tol 0)
 
 
+# the health check compiled once per shape and dtype, as training runs it (op by op it compiled
+# each of its operations anew for every shape: 7 of the property test's 20 s)
+_check = jax.jit(sparse_gp.check)
+
 def _hyper(dtype=jnp.float64, ls=LS, sf2=SF2, sn2=SN2):
     return kernels.make_kernel_params(ls, sf2, sn2, dtype=dtype)
 
@@ -262,7 +266,7 @@ def test_long_adversarial_stream_matches_80bit_replay(dtype, age_penalty):
     cond, nbv = _gram_condition(state, hyper)
     gamma_min = float(sparse_gp.novelty_threshold(hyper, dtype, 1e-4))
     assert cond <= nbv**2 * PEND_SF2 / (0.5 * gamma_min), cond
-    health = sparse_gp.check(state, hyper, jnp.array(xs[-150:], dtype), jnp.array(ys[-150:], dtype))
+    health = _check(state, hyper, jnp.array(xs[-150:], dtype), jnp.array(ys[-150:], dtype))
     assert bool(health.finite) and bool(health.posterior_below_prior)
 
 
@@ -392,7 +396,7 @@ def test_state_is_never_finite_but_wrong(seed, log_ratio, duplicate_share, capac
             state, info = _update_batch_traced(state, jnp.array(xs[sl], dtype), jnp.array(ys[sl], dtype),
                                                jnp.array(ts[sl]), hyper, jnp.asarray(age_penalty, dtype))
             infos.append(info)
-            health = sparse_gp.check(state, hyper, jnp.array(xs[sl], dtype), jnp.array(ys[sl], dtype))
+            health = _check(state, hyper, jnp.array(xs[sl], dtype), jnp.array(ys[sl], dtype))
             assert bool(health.finite) and bool(health.posterior_below_prior), health
             mean, var = _predict(state, jnp.array(xs[::7], dtype), hyper)
             assert np.all(np.isfinite(mean)) and var.min() >= 0
@@ -411,14 +415,14 @@ def test_health_check_catches_finite_but_wrong_states():
     xs, ys = _data(60, 12)
     hyper = _hyper()
     state = sparse_gp.update_batch(sparse_gp.init(20, 4), jnp.array(xs), jnp.array(ys), hyper, 0)
-    assert bool(sparse_gp.check(state, hyper, jnp.array(xs), jnp.array(ys)).ok)
+    assert bool(_check(state, hyper, jnp.array(xs), jnp.array(ys)).ok)
     diverged = state._replace(alpha=state.alpha * 1e6)  # finite, mean far off (the 1e179 failure)
-    h = sparse_gp.check(diverged, hyper, jnp.array(xs), jnp.array(ys))
+    h = _check(diverged, hyper, jnp.array(xs), jnp.array(ys))
     assert bool(h.finite) and not bool(h.mean_in_range) and not bool(h.ok)
     inflated = state._replace(alpha_cov_root=state.alpha_cov_root * 3.0)  # posterior above prior
-    assert not bool(sparse_gp.check(inflated, hyper, jnp.array(xs), jnp.array(ys)).ok)
+    assert not bool(_check(inflated, hyper, jnp.array(xs), jnp.array(ys)).ok)
     nan = state._replace(gram_inv_root=state.gram_inv_root.at[0, 0].set(jnp.nan))
-    assert not bool(sparse_gp.check(nan, hyper, jnp.array(xs), jnp.array(ys)).ok)
+    assert not bool(_check(nan, hyper, jnp.array(xs), jnp.array(ys)).ok)
 
 
 def test_novelty_threshold_follows_dtype_and_noise():
