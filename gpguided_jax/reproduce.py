@@ -392,19 +392,24 @@ def run_method(
         done += 1
         chunks_this_call += 1
         _save_checkpoint(ckpt, state, records, done, digest)
-        elapsed = time.perf_counter() - t_start
-        updates_done = min(done * chunk_size, cfg.num_updates)
-        rate = chunks_this_call * chunk_size / max(elapsed, 1e-9)
-        eta = (cfg.num_updates - updates_done) / max(rate, 1e-9)
-        msg = (f"[{cfg.method}] updates {updates_done}/{cfg.num_updates} | {rate:.1f} updates/s "
-               f"x {n_real} seeds | ETA {eta:.0f}s | mean reward {np.mean(rec.mean_reward[:n_real, -1]):.3f}")
-        for field, what in (("nonfinite_grad", "non-finite gradient estimates skipped"),
-                            ("gp_guard", "GP updates rejected by the health check")):
-            bad = int(np.sum(np.asarray(getattr(rec, field))[:n_real]))
-            if bad:
-                msg += f" | WARNING: {bad} {what}"
-        progress(msg)
+        rate = chunks_this_call * chunk_size / max(time.perf_counter() - t_start, 1e-9)
+        progress(_chunk_progress(cfg, rec, n_real, min(done * chunk_size, cfg.num_updates), rate))
     return {k: v[:n_real] for k, v in records.items()}, state
+
+
+def _chunk_progress(cfg: config_lib.TrainConfig, rec, n_real: int, updates_done: int,
+                    rate: float) -> str:
+    """The progress line after a chunk: updates done, rate, ETA, the latest mean reward of the
+    real (unpadded) seeds, and a warning for skipped gradients or rejected GP updates."""
+    eta = (cfg.num_updates - updates_done) / max(rate, 1e-9)
+    msg = (f"[{cfg.method}] updates {updates_done}/{cfg.num_updates} | {rate:.1f} updates/s "
+           f"x {n_real} seeds | ETA {eta:.0f}s | mean reward {np.mean(rec.mean_reward[:n_real, -1]):.3f}")
+    for field, what in (("nonfinite_grad", "non-finite gradient estimates skipped"),
+                        ("gp_guard", "GP updates rejected by the health check")):
+        bad = int(np.sum(np.asarray(getattr(rec, field))[:n_real]))
+        if bad:
+            msg += f" | WARNING: {bad} {what}"
+    return msg
 
 
 # ------------------------------------------------------------------------------------------------

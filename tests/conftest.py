@@ -17,8 +17,8 @@
   faster (fig2_fig4_coverage.py's test: 35.6 s against 22.4 s). The library's in-process tests
   and the compile-cache test compile as a user's run does.
 * `make test` runs `--dist loadgroup`, so that the tests of one `xdist_group` share their
-  session fixtures on one worker; a run where xdist's grouping was lost stops at collection
-  (`pytest_collection_modifyitems` below).
+  session fixtures on one worker; where xdist's grouping was lost, the grouped tests fail
+  saying so (`pytest_collection_modifyitems` below).
 """
 
 import os
@@ -48,16 +48,18 @@ FAST_COMPILE_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_
 
 def fast_compile_env(**extra):
     """os.environ (and `extra`) with XLA_FLAGS for fast compilation: for the end-to-end tests of
-    experiment scripts and notebooks only. The compilation cache keys on the flags, so programs
-    compiled so are never loaded by a test that compiles with the defaults."""
+    experiment scripts, notebooks and the command line only. The compilation cache keys on the
+    flags, so programs compiled so are never loaded by a test that compiles with the defaults."""
     env = dict(os.environ, **extra)
     env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {FAST_COMPILE_XLA_FLAGS}".strip()
     return env
 
-def run_script(args, *, fast_compile=True, timeout=600):
-    """`python args...` in the project root (an experiment script); fails the test, with the end
-    of its stderr, unless it exits 0. Returns the CompletedProcess."""
-    env = fast_compile_env() if fast_compile else dict(os.environ)
+
+def run_script(args, *, fast_compile=True, timeout=600, **env):
+    """`python args...` in the project root (an experiment script, or ``-m gpguided_jax.cli``),
+    with `env` added to the environment; fails the test, with the end of its stderr, unless it
+    exits 0. Returns the CompletedProcess."""
+    env = fast_compile_env(**env) if fast_compile else dict(os.environ, **env)
     proc = subprocess.run([sys.executable, *map(str, args)], cwd=ROOT, env=env, capture_output=True,
                           text=True, timeout=timeout)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -75,10 +77,8 @@ def two_device_run(tmp_path_factory):
     """`gpguided reproduce` (TWO_DEVICE_ARGS) in one process with two host CPU devices, run once
     for the tests of the xdist group "two_devices"; returns its --out directory."""
     out = tmp_path_factory.mktemp("two_device_run")
-    env = fast_compile_env(XLA_FLAGS="--xla_force_host_platform_device_count=2")
-    proc = subprocess.run([sys.executable, "-m", "gpguided_jax.cli", *TWO_DEVICE_ARGS, "--out",
-                           str(out)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    run_script(["-m", "gpguided_jax.cli", *TWO_DEVICE_ARGS, "--out", out],
+               XLA_FLAGS="--xla_force_host_platform_device_count=2")
     return out
 
 

@@ -2,15 +2,13 @@
 
 import functools
 import json
-import subprocess
-import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from conftest import TWO_DEVICE_ARGS, fast_compile_env
+from conftest import TWO_DEVICE_ARGS, run_script
 
 from gpguided_jax import config as C
 from gpguided_jax import reproduce as R
@@ -198,14 +196,11 @@ def test_two_host_devices_equal_one(tmp_path, two_device_run):
     the gradient norm); there agreement is asserted at 1e-4 relative, far below any difference
     between seeds (~1e-1).
     """
-    env = fast_compile_env(XLA_FLAGS="--xla_force_host_platform_device_count=2")  # as the reference
     outs = {(2, "auto"): two_device_run}
     for n, loop in ((1, "auto"), (2, "vmap")):
         out = outs[n, loop] = tmp_path / f"dev{n}_{loop}"
-        cmd = [sys.executable, "-m", "gpguided_jax.cli", *TWO_DEVICE_ARGS, "--devices", str(n),
-               "--seed-loop", loop, "--out", str(out)]
-        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
-        assert proc.returncode == 0, proc.stderr[-3000:]
+        run_script(["-m", "gpguided_jax.cli", *TWO_DEVICE_ARGS, "--devices", n, "--seed-loop",
+                    loop, "--out", out], XLA_FLAGS="--xla_force_host_platform_device_count=2")
     for (n, loop), out in outs.items():
         config = json.loads((out / "config.json").read_text())
         assert len(config["devices"]) == n and config["devices"][-1] == f"TFRT_CPU_{n - 1}"
