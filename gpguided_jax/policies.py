@@ -8,6 +8,11 @@ All three share one calling convention, so that a training loop can pick one by 
   log_pi      = policy.log_prob(theta, state, action, ctx, aux)
   score       = policy.grad_log_prob(theta, state, action, ctx, aux)   # pytree like theta
   std         = policy.exploration_std(theta, state, ctx, aux)
+  action, aux, score, std = policy.act(key, theta, state, ctx)   # all four at once
+
+`act` is what a training loop calls at every step: the same numbers as `sample`, `grad_log_prob`
+and `exploration_std` (to rounding), with the GP and the controller evaluated once instead of in
+each of them.
 
 * `theta` is a `PolicyParams` (controller parameters, log sigma). Every policy takes the same
   `theta`; only the fixed-noise policy uses `log_std` (its score is 0 for the other two).
@@ -108,14 +113,21 @@ class Policy(NamedTuple):
       log_prob: (theta, state, action, ctx, aux) -> () log pi(action | state).
       grad_log_prob: (theta, state, action, ctx, aux) -> PolicyParams, hand-derived score.
       exploration_std: (theta, state, ctx, aux) -> () a standard deviation of the exploration.
+      act: (key, theta, state, ctx) -> (action, aux, score, std): `sample`, then the score and
+        the exploration std of that action, sharing their GP and controller evaluations.
       name: the policy's name (static).
+      reads_gp: whether the policy reads the GP in `ctx` (static). One that does not acts the
+        same whatever the GP has taken in, so a training loop may roll out all episodes of an
+        update at once, before the GP takes any of them in.
     """
 
     sample: Callable[..., tuple[jax.Array, PolicyAux]]
     log_prob: Callable[..., jax.Array]
     grad_log_prob: Callable[..., PolicyParams]
     exploration_std: Callable[..., jax.Array]
+    act: Callable[..., tuple[jax.Array, PolicyAux, PolicyParams, jax.Array]]
     name: str
+    reads_gp: bool = True
 
 
 def init_params(controller: controllers_lib.Controller, log_std: float = 0.0, dtype=None):
@@ -202,6 +214,8 @@ def gp_latent_variance_and_grad(gp, kernel, state, action):
     action_lengthscale = kernel.lengthscales[-1]
     dk = -k * (x[-1] - gp.basis_vectors[:, -1]) / (action_lengthscale * action_lengthscale)
     T, Z = gp.gram_inv_root, gp.alpha_cov_root
+    # four matrix-vector products: T [k, dk] as one 2-column product, or as rows times T^T, ran
+    # 2x slower inside the training loop on XLA:CPU (measured 2026-12-02)
     w, z = T @ k, Z @ k
     w_d, z_d = T @ dk, Z @ dk
     gamma = kxx - w @ w
@@ -217,6 +231,19 @@ def gp_mean(gp, kernel, state, action):
     return gp.prior_mean + sparse_gp.masked_kernel_vector(gp, x, kernel) @ gp.alpha
 
 
+def gp_means_over_actions(gp, kernel, state, actions):
+    """Q_GP(s, a_j) for K actions at one state: (K,). The kernel's state part
+    sum_d<3 ((x_d - b_id) / l_d)^2 is computed once for all actions (`gp_mean` for each a_j,
+    to rounding)."""
+    kernel = jax.tree.map(lambda a: jnp.asarray(a, gp.alpha.dtype), kernel)
+    x = kernels.state_action_features(state, jnp.zeros((), state.dtype))
+    z_state = (x[:-1] - gp.basis_vectors[:, :-1]) / kernel.lengthscales[:-1]
+    state_part = jnp.sum(z_state * z_state, axis=1)  # (S,)
+    z_action = (actions[:, None] - gp.basis_vectors[None, :, -1]) / kernel.lengthscales[-1]
+    k = kernel.signal_variance * jnp.exp(-0.5 * (state_part[None, :] + z_action * z_action))
+    return gp.prior_mean + k @ jnp.where(gp.mask, gp.alpha, 0.0)
+
+
 def _floored(value, floor):
     # `where`, not `maximum`: at a tie jnp.maximum splits the gradient in halves, and we want the
     # hand gradient (0 on the floor) and autodiff to agree everywhere.
@@ -226,7 +253,9 @@ def _floored(value, floor):
 def guided_variance(controller, controller_params, state, ctx):
     """sigma^2_GP(s) = max(lambda_v sigma^2(x*), floor), x* = (s, c(s; theta_c)) (eq. 16)."""
     mean_action = controller.apply(controller_params, state)
-    latent = gp_latent_variance(ctx.gp, ctx.kernel, state, mean_action)
+    # the value of gp_latent_variance_and_grad (equal to gp_latent_variance up to rounding), so
+    # that sampling, log_prob and the score all use the same sigma^2_GP bit for bit
+    latent = gp_latent_variance_and_grad(ctx.gp, ctx.kernel, state, mean_action)[0]
     return _floored(ctx.variance_scale * latent, ctx.variance_floor)
 
 
@@ -299,7 +328,22 @@ def fixed_noise_policy(controller: controllers_lib.Controller) -> Policy:
         del state, ctx, aux
         return jnp.exp(theta.log_std)
 
-    return Policy(sample, log_prob, grad_log_prob, exploration_std, "fixed_noise")
+    def act(key, theta, state, ctx):
+        del ctx
+        chex.assert_shape(state, (2,))
+        mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
+        std = jnp.exp(theta.log_std)
+        action = mean_action + std * _random.normal(key, (), mean_action.dtype)
+        variance = std * std
+        aux = PolicyAux(mean_action=mean_action, variance=variance,
+                        **_empty_gibbs_fields(state.dtype))
+        diff = action - mean_action
+        score = PolicyParams(controller=_scale_tree(grad_mean, diff / variance),
+                             log_std=diff * diff / variance - 1.0)
+        return action, aux, score, std
+
+    return Policy(sample, log_prob, grad_log_prob, exploration_std, act, "fixed_noise",
+                  reads_gp=False)
 
 
 # --------------------------------------------------------------------------------------------
@@ -323,8 +367,7 @@ def guided_variance_policy(controller: controllers_lib.Controller) -> Policy:
     def sample(key, theta, state, ctx):
         chex.assert_shape(state, (2,))
         mean_action = controller.apply(theta.controller, state)
-        latent = gp_latent_variance(ctx.gp, ctx.kernel, state, mean_action)
-        variance = _floored(ctx.variance_scale * latent, ctx.variance_floor)
+        variance = guided_variance(controller, theta.controller, state, ctx)
         action = mean_action + jnp.sqrt(variance) * _random.normal(
             key, (), mean_action.dtype
         )
@@ -339,11 +382,7 @@ def guided_variance_policy(controller: controllers_lib.Controller) -> Policy:
         variance = guided_variance(controller, theta.controller, state, ctx)
         return _gaussian_log_prob(action, mean_action, variance)
 
-    def grad_log_prob(theta, state, action, ctx, aux):
-        del aux
-        variance, grad_variance, mean_action, grad_mean = guided_variance_and_grad(
-            controller, theta.controller, state, ctx
-        )
+    def score(theta, action, variance, grad_variance, mean_action, grad_mean):
         diff = action - mean_action
         mean_weight = diff / variance
         variance_weight = (diff * diff - variance) / (2.0 * variance * variance)
@@ -352,13 +391,31 @@ def guided_variance_policy(controller: controllers_lib.Controller) -> Policy:
         )
         return PolicyParams(controller=grad_controller, log_std=jnp.zeros_like(theta.log_std))
 
+    def grad_log_prob(theta, state, action, ctx, aux):
+        del aux
+        variance, grad_variance, mean_action, grad_mean = guided_variance_and_grad(
+            controller, theta.controller, state, ctx
+        )
+        return score(theta, action, variance, grad_variance, mean_action, grad_mean)
+
     def exploration_std(theta, state, ctx, aux):
         # sigma_GP of the distribution the action was drawn from (the same number that
         # guided_variance(controller, theta.controller, state, ctx) recomputes).
         del theta, state, ctx
         return jnp.sqrt(aux.variance)
 
-    return Policy(sample, log_prob, grad_log_prob, exploration_std, "guided_variance")
+    def act(key, theta, state, ctx):
+        chex.assert_shape(state, (2,))
+        variance, grad_variance, mean_action, grad_mean = guided_variance_and_grad(
+            controller, theta.controller, state, ctx
+        )
+        std = jnp.sqrt(variance)
+        action = mean_action + std * _random.normal(key, (), mean_action.dtype)
+        aux = PolicyAux(mean_action=mean_action, variance=variance,
+                        **_empty_gibbs_fields(state.dtype))
+        return action, aux, score(theta, action, variance, grad_variance, mean_action, grad_mean), std
+
+    return Policy(sample, log_prob, grad_log_prob, exploration_std, act, "guided_variance")
 
 
 # --------------------------------------------------------------------------------------------
@@ -430,18 +487,17 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
     if num_candidates < 1:
         raise ValueError("num_candidates must be positive")
 
-    def sample(key, theta, state, ctx):
+    def draw(key, theta, state, ctx):
+        """The candidates, their energies and the selection; also (E, dc/dtheta_c) for the score."""
         chex.assert_shape(state, (2,))
         key_candidates, key_select = jax.random.split(key)
-        mean_action = controller.apply(theta.controller, state)
-        variance = candidate_variance(controller, theta.controller, state, ctx)
+        mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
+        latent = gp_latent_variance(ctx.gp, ctx.kernel, state, mean_action)
+        variance = _floored(ctx.candidate_scale * latent, ctx.candidate_floor)
         candidates = mean_action + jnp.sqrt(variance) * _random.normal(
             key_candidates, (num_candidates,), mean_action.dtype
         )
-        q_values = jax.vmap(gp_mean, in_axes=(None, None, None, 0))(
-            ctx.gp, ctx.kernel, state, candidates
-        )
-        normalised_q = normalise_q(q_values)
+        normalised_q = normalise_q(gp_means_over_actions(ctx.gp, ctx.kernel, state, candidates))
         energy, probs = gibbs_distribution(candidates, normalised_q, mean_action, ctx)
         index = gibbs_select(key_select, energy, ctx.inverse_temperature)
         aux = PolicyAux(
@@ -452,7 +508,11 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
             probs=probs,
             index=index,
         )
-        return candidates[index], aux
+        return aux, energy, grad_mean
+
+    def sample(key, theta, state, ctx):
+        aux = draw(key, theta, state, ctx)[0]
+        return aux.candidates[aux.index], aux
 
     def log_prob(theta, state, action, ctx, aux):
         del action
@@ -469,13 +529,9 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
         relative_energy = jnp.where(selected, 0.0, energy - energy[aux.index])
         return -jax.nn.logsumexp(ctx.inverse_temperature * relative_energy)
 
-    def grad_log_prob(theta, state, action, ctx, aux):
-        del action
-        chex.assert_shape(state, (2,))
-        mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
-        energy, probs = gibbs_distribution(aux.candidates, aux.normalised_q, mean_action, ctx)
+    def score(theta, aux, energy, probs, grad_mean, ctx):
         # dE_j / dc = E_j (a_j - c) / sigma_e^2 (eq. 22)
-        denergy_dc = energy * (aux.candidates - mean_action) / (ctx.energy_width**2)
+        denergy_dc = energy * (aux.candidates - aux.mean_action) / (ctx.energy_width**2)
         # beta (dE_J - sum_j pi_j dE_j) written as beta sum_j pi_j (dE_J - dE_j) (sum_j pi_j = 1),
         # with the j = J term an exact 0, so that the score stays accurate relative to its own
         # size, O(1 - pi_J), when pi_J -> 1.
@@ -486,16 +542,33 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
             controller=_scale_tree(grad_mean, dlogpi_dc), log_std=jnp.zeros_like(theta.log_std)
         )
 
+    def spread(candidates, probs):
+        """Standard deviation of the discrete distribution pi over the candidates (about its own
+        mean sum_j pi_j a_j, not about c(s))."""
+        centre = probs @ candidates
+        offsets = candidates - centre
+        return jnp.sqrt(jnp.maximum(probs @ (offsets * offsets), 0.0))
+
+    def grad_log_prob(theta, state, action, ctx, aux):
+        del action
+        chex.assert_shape(state, (2,))
+        mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
+        energy, probs = gibbs_distribution(aux.candidates, aux.normalised_q, mean_action, ctx)
+        return score(theta, aux._replace(mean_action=mean_action), energy, probs, grad_mean, ctx)
+
     def exploration_std(theta, state, ctx, aux):
         """Standard deviation of the discrete distribution pi over the candidates (about its own
         mean sum_j pi_j a_j, not about c(s))."""
         mean_action = controller.apply(theta.controller, state)
         _, probs = gibbs_distribution(aux.candidates, aux.normalised_q, mean_action, ctx)
-        centre = probs @ aux.candidates
-        spread = aux.candidates - centre
-        return jnp.sqrt(jnp.maximum(probs @ (spread * spread), 0.0))
+        return spread(aux.candidates, probs)
 
-    return Policy(sample, log_prob, grad_log_prob, exploration_std, "gibbs")
+    def act(key, theta, state, ctx):
+        aux, energy, grad_mean = draw(key, theta, state, ctx)
+        return (aux.candidates[aux.index], aux, score(theta, aux, energy, aux.probs, grad_mean, ctx),
+                spread(aux.candidates, aux.probs))
+
+    return Policy(sample, log_prob, grad_log_prob, exploration_std, act, "gibbs")
 
 
 POLICY_NAMES = ("fixed_noise", "guided_variance", "gibbs")

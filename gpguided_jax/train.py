@@ -194,9 +194,7 @@ def rollout(prog: Program, key, theta, ctx, policy, cfg: TrainConfig) -> Episode
 
     def body(s, step_key):
         key_act, key_reward = jax.random.split(step_key)
-        a, aux = policy.sample(key_act, theta, s, ctx)
-        score = policy.grad_log_prob(theta, s, a, ctx, aux)
-        std = policy.exploration_std(theta, s, ctx, aux)
+        a, _, score, std = policy.act(key_act, theta, s, ctx)
         s_next, r = pendulum.step(key_reward, s, a, cfg.pendulum)
         return s_next, (s, s_next, a, r, score, std)
 
@@ -303,20 +301,39 @@ def one_update(prog: Program, cfg: TrainConfig, state: TrainState):
     key_eval = jax.random.fold_in(key_eps, 1)  # a side stream: the episodes' keys stay as they were
     t = state.update_index
 
-    def episode(gp, key_e):
-        ctx = policy_context(cfg, gp, state.kernel)
-        ep = rollout(prog, key_e, state.theta, ctx, prog.policy, cfg)
-        returns = estimators.discounted_returns(ep.rewards, cfg.discount)
+    def take_in(gp, ep, returns):
         fired, error_ratio = jnp.zeros((), jnp.int32), jnp.zeros((), prog.dtype)
         if static.uses_gp:
             k = static.gp_stride  # every k-th step of the episode joins the GP (1: all)
             gp, fired, health = take_in_episode(
                 gp, state.kernel, _features(ep.states, ep.actions)[::k], returns[::k], t, cfg)
             error_ratio = health.mean_error_ratio
-        return gp, (ep, returns, fired, error_ratio)
+        return gp, fired, error_ratio
 
     keys = jax.random.split(key_eps, static.episodes_per_update)
-    gp, (eps, returns, fired, error_ratio) = jax.lax.scan(episode, state.gp, keys)
+    if prog.policy.reads_gp:
+        # Each episode acts with the GP that has taken in the episodes before it.
+        def episode(gp, key_e):
+            ctx = policy_context(cfg, gp, state.kernel)
+            ep = rollout(prog, key_e, state.theta, ctx, prog.policy, cfg)
+            returns = estimators.discounted_returns(ep.rewards, cfg.discount)
+            gp, fired, error_ratio = take_in(gp, ep, returns)
+            return gp, (ep, returns, fired, error_ratio)
+
+        gp, (eps, returns, fired, error_ratio) = jax.lax.scan(episode, state.gp, keys)
+    else:
+        # The policy does not read the GP: the episodes are rolled out side by side (one batch,
+        # the same draws as one after another), then the GP takes them in in order.
+        ctx = policy_context(cfg, state.gp, state.kernel)
+        eps = jax.vmap(lambda k: rollout(prog, k, state.theta, ctx, prog.policy, cfg))(keys)
+        returns = jax.vmap(estimators.discounted_returns, in_axes=(0, None))(eps.rewards,
+                                                                             cfg.discount)
+
+        def take_in_one(gp, ep_and_returns):
+            gp, fired, error_ratio = take_in(gp, *ep_and_returns)
+            return gp, (fired, error_ratio)
+
+        gp, (fired, error_ratio) = jax.lax.scan(take_in_one, state.gp, (eps, returns))
     grad = gradient_estimate(prog, state, eps, returns, gp)
     theta, opt_state, grad_norm, finite, at_bound = optimiser_step(state, grad, cfg)
 

@@ -424,6 +424,52 @@ def test_gp_helpers_agree_with_sparse_gp_predict():
     )
     np.testing.assert_allclose(ours_mean, mean, rtol=1e-12)
     np.testing.assert_allclose(ours_var, var, rtol=1e-12)
+    many = policies.gp_means_over_actions(gp, hyper, state, actions)  # the Gibbs candidates' Q
+    np.testing.assert_allclose(many, mean, rtol=1e-12)
+    gp_masked = gp._replace(mask=gp.mask.at[2].set(False))  # an inactive slot is not read
+    np.testing.assert_allclose(
+        policies.gp_means_over_actions(gp_masked, hyper, state, actions),
+        jax.vmap(policies.gp_mean, (None, None, None, 0))(gp_masked, hyper, state, actions),
+        rtol=1e-12)
+
+
+@functools.lru_cache(maxsize=None)
+def act_vs_parts_fn(policy_name, controller_name):
+    controller = _CONTROLLERS[controller_name]
+    policy = get_policy(policy_name, controller_name)
+
+    @jax.jit
+    def fn(key, p):
+        theta, state, _, ctx, _ = jit_build_case(policy, controller, key, p)
+        k_act = jax.random.fold_in(key, 7)
+        action, aux, score, std = policy.act(k_act, theta, state, ctx)
+        action_s, aux_s = policy.sample(k_act, theta, state, ctx)
+        score_s = policy.grad_log_prob(theta, state, action_s, ctx, aux_s)
+        std_s = policy.exploration_std(theta, state, ctx, aux_s)
+        return (action, aux, score, std), (action_s, aux_s, score_s, std_s)
+
+    return fn
+
+
+@requires_x64
+@pytest.mark.parametrize("controller_name", CONTROLLER_NAMES)
+@pytest.mark.parametrize("policy_name", policies.POLICY_NAMES)
+@settings(max_examples=15, deadline=None, derandomize=True)
+@_with_edge_examples
+@given(**_case_strategy)
+def test_act_equals_sample_score_and_std(policy_name, controller_name, seed, **case):
+    """`act` (what the training loop calls at every step, with the GP and the controller evaluated
+    once) gives the action, aux, score and exploration std of `sample`, `grad_log_prob` and
+    `exploration_std` called one after another, to rounding (the same key, the same draws)."""
+    fused, parts = act_vs_parts_fn(policy_name, controller_name)(
+        jax.random.PRNGKey(seed), _case_inputs(case))
+    (action, aux, score, std), (action_s, aux_s, score_s, std_s) = fused, parts
+    assert int(aux.index) == int(aux_s.index)
+    np.testing.assert_allclose(action, action_s, rtol=1e-12, atol=1e-12)
+    for a, b in zip(jax.tree.leaves(aux), jax.tree.leaves(aux_s), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+    assert float(relative_error(score, score_s)) < 1e-9
+    np.testing.assert_allclose(std, std_s, rtol=1e-10, atol=1e-12)
 
 
 # ------------------------------------------------------------------------------------------------
