@@ -157,7 +157,7 @@ def nlml_and_grad(log_hyper: LogParams, xs: jax.Array, ys: jax.Array, jitter: fl
 # are set by the conditioning of A; tests/test_hyperfit.py checks it against an 80-bit inverse).
 # ------------------------------------------------------------------------------------------------
 
-_INVERSE_BLOCK = 64
+_INVERSE_BLOCK = 128  # fewer levels compile faster (64: +0.9 s for the paper fit), at the same speed
 
 
 def _lower_inverse(L):
