@@ -96,13 +96,14 @@ def test_benchmark_prose_quotes_the_result_files():
 
 def test_cross_machine_figures_quote_their_files():
     """The known-limitations figures: three float64 runs (previous host, new host with OpenBLAS's
-    default threads, new host with one LAPACK thread = the current results)."""
+    default threads, new host with one LAPACK thread: the results before the blocked-inverse fit
+    and the batched fixed-noise roll-outs of 2026-12-02, kept in onethread_2026-12-02)."""
     import csv
 
     text = _readme()
     runs = [{r["method"]: r for r in csv.DictReader(open(
         os.path.join(ROOT, "docs", "results", d, "summary.csv")))}
-        for d in ("previous_host", "rerun_2026-12-01", "paper_float64")]
+        for d in ("previous_host", "rerun_2026-12-01", "onethread_2026-12-02")]
     num = r"(-[\d.]+)"
     m = re.search(rf"final IQM\s+is {num}, {num} and {num}, its mean {num}, {num} and {num}, and "
                   r"(\d+), (\d+) and (\d+) seeds\s+end below the zero-torque policy", text)
@@ -116,6 +117,17 @@ def test_cross_machine_figures_quote_their_files():
         assert run["reinforce"] == runs[0]["reinforce"]
         for name in ("gp_pg", "guided_variance"):
             assert abs(float(run[name]["final_mean"]) - float(runs[0][name]["final_mean"])) < 1e-11
+    # the current results: the same machine, the code of the blocked-inverse fit
+    now = {r["method"]: r for r in csv.DictReader(open(
+        os.path.join(ROOT, "docs", "results", "paper_float64", "summary.csv")))}
+    assert now["reinforce"]["final_mean"] == runs[2]["reinforce"]["final_mean"]
+    for name in ("gp_pg", "guided_variance"):
+        assert abs(float(now[name]["final_mean"]) - float(runs[2][name]["final_mean"])) < 1e-13
+    m = re.search(rf"guided_direction's final IQM is\s+{num} with (\d+) seeds below the zero-torque",
+                  text)
+    assert m, "current-code sentence not found"
+    assert float(m.group(1)) == round(float(now["guided_direction"]["final_iqm"]), 4)
+    assert int(m.group(2)) == int(now["guided_direction"]["fail_below_zero_torque"])
 
 
 def _num(text: str) -> float:
