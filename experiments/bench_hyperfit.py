@@ -1,6 +1,6 @@
-"""The hyperparameter fit: L-BFGS (15 iterations, the default) against the 100 Adam steps used
-before, on the paper preset's data (the initial policy's 2000 pairs per seed, fitted on the same
-random 500-pair subset as in training).
+"""The hyperparameter fit: the paper preset's default (100 Adam steps) against L-BFGS (15
+iterations, the other optimiser) and two cheaper Adam fits, on the paper preset's data (the
+initial policy's 2000 pairs per seed, fitted on the same random 500-pair subset as in training).
 
 For each seed: the exact negative log marginal likelihood (NLML) per pair of the fitted
 hyperparameters on the fitting subset and on all 2000 pairs (the quantity the fit stands for),
@@ -8,15 +8,20 @@ and the wall time of each fit for all seeds as one vmapped program (compile and 
 --repeats). The tolerance stated in the README: a faster fit's NLML on all pairs is never worse
 than the default's (Adam, 100 steps, 500 pairs) by more than 0.01 nats per pair on any seed.
 Besides L-BFGS, the two cheaper Adam fits that would meet the 3 s target are measured against
-it: 100 steps on 300 pairs, and 40 steps on 500 pairs. Prints JSON (--out also writes it).
+it: 100 steps on 300 pairs, and 40 steps on 500 pairs. With --reference (a report of this script
+written by an earlier version of the code), the default fit's NLML per pair is also compared seed
+by seed with the reference's: a change of the fit's arithmetic (the blocked inverse of 2026-12-02)
+must leave it within the same tolerance. Prints JSON (--out also writes it).
 
 Usage:
-  python experiments/bench_hyperfit.py --seeds 10 --out docs/results/hyperfit.json
+  python experiments/bench_hyperfit.py --seeds 10 --reference docs/results/hyperfit_2026-11-23.json \
+      --out docs/results/hyperfit.json
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import sys
 import time
@@ -38,6 +43,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--reference", default=None,
+                    help="an earlier report of this script to compare the default fit with")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     cfg = config_lib.preset("paper", method="gp_pg")
@@ -86,6 +93,15 @@ def main(argv=None) -> int:
             "seeds_better": int(np.sum(diff < 0)), "within_tolerance": bool(diff.max() <= TOLERANCE)}
     out["lbfgs_minus_adam_all"] = out["fits"]["lbfgs"]["minus_default_all"]
     out["within_tolerance"] = out["lbfgs_minus_adam_all"]["within_tolerance"]
+    if args.reference:
+        with open(args.reference) as f:
+            ref = json.load(f)
+        if ref["seeds"] != args.seeds:
+            raise SystemExit(f"--reference has {ref['seeds']} seeds, this run {args.seeds}")
+        diff = base - np.asarray(ref["fits"]["adam"]["nlml_per_pair_all"])
+        out["adam_minus_reference_all"] = {
+            "reference": args.reference, "max_abs": float(np.max(np.abs(diff))),
+            "max": float(diff.max()), "within_tolerance": bool(diff.max() <= TOLERANCE)}
     bench.print_report(out, args.out)
     return 0
 

@@ -557,8 +557,7 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
         return score(theta, aux._replace(mean_action=mean_action), energy, probs, grad_mean, ctx)
 
     def exploration_std(theta, state, ctx, aux):
-        """Standard deviation of the discrete distribution pi over the candidates (about its own
-        mean sum_j pi_j a_j, not about c(s))."""
+        """`spread` of pi at the current theta."""
         mean_action = controller.apply(theta.controller, state)
         _, probs = gibbs_distribution(aux.candidates, aux.normalised_q, mean_action, ctx)
         return spread(aux.candidates, probs)

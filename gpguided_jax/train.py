@@ -4,7 +4,8 @@ One seed's run is nested `lax.scan`s: updates -> episodes -> steps. One policy u
 is, in order, the functions of this module:
 
 1. `rollout`: act with the method's policy for `episodes_per_update` episodes; the GP is held
-   fixed during an episode;
+   fixed during an episode (a policy that does not read the GP, the fixed-noise policy of
+   REINFORCE and gp_pg, rolls the episodes out side by side before the GP takes any of them in);
 2. `take_in_episode`: after each episode the GP takes in its (x_t, Ret_t) pairs, each stamped with
    the update index (eq. 12), and a health check (`sparse_gp.check`) accepts or rejects the new
    GP state (a rejected episode leaves the GP as it was and is counted in `gp_guard`);
