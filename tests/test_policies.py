@@ -177,12 +177,19 @@ def _with_edge_examples(test):
     return test
 
 
-@requires_x64
-@pytest.mark.parametrize("controller_name", CONTROLLER_NAMES)
-@pytest.mark.parametrize("policy_name", policies.POLICY_NAMES)
-@settings(max_examples=25, deadline=None, derandomize=True)
-@_with_edge_examples
-@given(**_case_strategy)
+def _every_policy_and_case(max_examples):
+    """Every policy x controller, over `max_examples` property-based cases plus the edge cases."""
+
+    def wrap(test):
+        test = _with_edge_examples(given(**_case_strategy)(test))
+        test = settings(max_examples=max_examples, deadline=None, derandomize=True)(test)
+        test = pytest.mark.parametrize("policy_name", policies.POLICY_NAMES)(test)
+        return requires_x64(pytest.mark.parametrize("controller_name", CONTROLLER_NAMES)(test))
+
+    return wrap
+
+
+@_every_policy_and_case(max_examples=25)
 def test_grad_log_prob_matches_autodiff(policy_name, controller_name, seed, **case):
     """Hand score == autodiff score to 1e-8 relative (norm-wise, float64), against both
     reverse-mode (jax.grad) and forward-mode (jax.jacfwd) autodiff of log_prob.
@@ -451,12 +458,7 @@ def act_vs_parts_fn(policy_name, controller_name):
     return fn
 
 
-@requires_x64
-@pytest.mark.parametrize("controller_name", CONTROLLER_NAMES)
-@pytest.mark.parametrize("policy_name", policies.POLICY_NAMES)
-@settings(max_examples=15, deadline=None, derandomize=True)
-@_with_edge_examples
-@given(**_case_strategy)
+@_every_policy_and_case(max_examples=15)
 def test_act_equals_sample_score_and_std(policy_name, controller_name, seed, **case):
     """`act` (what the training loop calls at every step, with the GP and the controller evaluated
     once) gives the action, aux, score and exploration std of `sample`, `grad_log_prob` and
