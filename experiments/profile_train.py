@@ -7,7 +7,8 @@ The per-update computation (gpguided_jax.train.one_update) is split into its par
 on its own and timed over `--updates` updates for all seeds at a realistic point of a run (the
 state after `--warmup` updates, when the GP holds its basis vectors):
 
-* rollout_fixed_noise: the episodes with the fixed-noise policy (pendulum + linear controller);
+* rollout_fixed_noise: the episodes with the fixed-noise policy (pendulum + linear controller),
+  side by side as training rolls them out (the policy does not read the GP);
 * rollout_policy: the episodes with the method's own policy; the difference to the fixed-noise
   roll-out is the policy's GP work (guided variance: sigma^2 and its gradient at every step;
   Gibbs: the candidates' GP means and the candidate variance);
@@ -85,10 +86,15 @@ def profile_method(method: str, seeds: list[int], updates: int, warmup: int, dty
     E = cfg.episodes_per_update
 
     def episodes(state, policy):
+        keys = jax.random.split(state.key, E)
+        if not policy.reads_gp:  # side by side, as train.one_update rolls them out
+            ctx = T.policy_context(cfg, state.gp, state.kernel)
+            return jax.vmap(lambda k: T.rollout(prog, k, state.theta, ctx, policy, cfg))(keys)
+
         def one(gp, key):
             ep = T.rollout(prog, key, state.theta, T.policy_context(cfg, gp, state.kernel), policy, cfg)
             return gp, ep
-        return jax.lax.scan(one, state.gp, jax.random.split(state.key, E))[1]
+        return jax.lax.scan(one, state.gp, keys)[1]
 
     def repeat(body):
         """`body(state) -> state` scanned `updates` times, for every seed, compiled."""

@@ -332,8 +332,8 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
     # experiments/swingup_study.py tune (seeds 100-101; docs/tuning_swingup.md)
     "swingup": {
         "reinforce": {"learning_rate": 1.0},
-        "gp_pg": {"learning_rate": 0.3},
-        "guided_variance": {"learning_rate": 0.1},
+        "gp_pg": {"learning_rate": 1.0},
+        "guided_variance": {"learning_rate": 0.3, "age_penalty": 10.0},
         "guided_direction": {"learning_rate": 0.1},
     },
 }

@@ -52,3 +52,13 @@ def test_compile_cache_check_round_trips_a_program():
                 "--synthetic", "2"], fast_compile=False)  # the cache as a user's run fills it
     assert out["all_shipped_programs_load"] and out["programs"][0]["cold"]["kernels"] > 0
     assert out["synthetic"][0]["loads"]
+
+
+def test_bench_fast_paths_compares_each_fast_path_with_the_one_it_replaced():
+    out = _run(["experiments/bench_fast_paths.py", "--preset", "tiny", "--seeds", "2",
+                "--repeats", "1"])
+    # the blocked inverse changes the fit only by rounding
+    assert out["fit"]["max_relative_difference_of_fitted_hyperparameters"] < 1e-6
+    assert out["fit"]["plain"]["run_s_median"] > 0 and out["fit"]["blocked"]["run_s_median"] > 0
+    for method in ("reinforce", "gp_pg"):  # the same episodes, summed in another order
+        assert out["rollouts"][method]["max_abs_record_difference"] < 1e-8
