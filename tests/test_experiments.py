@@ -61,4 +61,4 @@ def test_bench_fast_paths_compares_each_fast_path_with_the_one_it_replaced():
     assert out["fit"]["max_relative_difference_of_fitted_hyperparameters"] < 1e-6
     assert out["fit"]["plain"]["run_s_median"] > 0 and out["fit"]["blocked"]["run_s_median"] > 0
     for method in ("reinforce", "gp_pg"):  # the same episodes, summed in another order
-        assert out["rollouts"][method]["max_abs_record_difference"] < 1e-8
+        assert out["rollouts"][method]["max_abs_record_difference"] < 1e-6
