@@ -50,7 +50,9 @@ figures: $(STAMP)
 	$(PY) experiments/fig1_bv_composition.py --out docs/figures
 
 # The swing-up study (issue 11): tuning on seeds 100-101, then seeds 1000-1009 against PPO and SAC.
+# It starts afresh, as `results` does (a held-out checkpoint would be resumed, and its wall time lost).
 swingup: $(STAMP)
+	rm -f docs/results/swingup/methods/checkpoint_* docs/results/swingup/methods/kernels.npz
 	$(PY) experiments/swingup_study.py tune
 	$(PY) experiments/swingup_study.py heldout
 	$(PY) experiments/swingup_study.py gpfig
