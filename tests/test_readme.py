@@ -321,3 +321,28 @@ def test_benchmark_comparison_with_the_previous_run_quotes_both_files():
     pr = new["paper_run"]
     assert f"missed by {pr['cold_s']['median'] - 30:.1f} s with an empty one" in text
     assert pr["warm_s"]["median"] < 30
+
+
+def test_fast_paths_prose_quotes_its_files():
+    """This stop's changes as the Benchmarks prose states them: fast_paths.json (the in-turn
+    comparisons) and hyperfit.json (the fit's likelihood against the 2026-11-23 report)."""
+    text = " ".join(_readme().split())
+    res = os.path.join(ROOT, "docs", "results")
+    fast = json.load(open(os.path.join(res, "fast_paths.json")))
+    fit = fast["fit"]
+    m = re.search(r"the 10-seed fit took ([\d.]+) s against ([\d.]+) s \(([\d.]+)×\), the fitted "
+                  r"hyperparameters differ by at most ([\d.e-]+) relative", text)
+    assert m, "fit sentence not found"
+    assert [float(x) for x in m.groups()[:3]] == [
+        round(fit["blocked"]["run_s_median"], 2), round(fit["plain"]["run_s_median"], 2),
+        round(fit["speedup_blocked_over_plain"], 2)]
+    assert float(m.group(4)) == float(f"{fit['max_relative_difference_of_fitted_hyperparameters']:.1e}")
+    assert f"{fit['speedup_blocked_over_plain']:.2f}× faster in turn" in text
+    roll = fast["rollouts"]
+    m = re.search(r"REINFORCE's run ([\d.]+)× and gp_pg's ([\d.]+)× faster", text)
+    assert m and [float(x) for x in m.groups()] == [
+        round(roll["reinforce"]["speedup_side_by_side"], 2), round(roll["gp_pg"]["speedup_side_by_side"], 2)]
+    assert f"gp_pg's run {roll['gp_pg']['speedup_side_by_side']:.2f}× faster (below)" in text
+    ref = json.load(open(os.path.join(res, "hyperfit.json")))["adam_minus_reference_all"]
+    m = re.search(r"every seed's NLML per pair is within ([\d.e-]+) nats of the fit before", text)
+    assert m and float(m.group(1)) == float(f"{ref['max_abs']:.1e}") and ref["within_tolerance"]
