@@ -92,10 +92,7 @@ def _rollout_programs(method, mesh, keys, priors, preset):
     """(state, {variant: compiled whole run}) for one method, the two roll-out paths."""
     cfg = config_lib.preset(preset, method=method)
     train = train_lib.make_train(cfg)
-    if cfg.uses_gp:
-        state = reproduce.per_seed_program(lambda k, p: train.init(k, cfg, p), mesh)(keys, priors)
-    else:
-        state = reproduce.per_seed_program(lambda k: train.init(k, cfg), mesh)(keys)
+    state = bench.initial_states(cfg, mesh, keys, priors)
     progs = {}
     for name, reads_gp in (("one_after_another", True), ("side_by_side", False)):
         prog = train.program._replace(policy=train.program.policy._replace(reads_gp=reads_gp))

@@ -210,6 +210,15 @@ def numpy_gp_pg_seconds_per_update(cfg, prior, num_updates, rng) -> float:
     return (time.perf_counter() - t0) / num_updates
 
 
+def initial_states(cfg, mesh, keys, priors):
+    """The seeds' initial `TrainState`s as `gpguided reproduce` makes them: a GP method starts from
+    the fitted `priors` (shared by the GP methods), REINFORCE from none."""
+    train = train_lib.make_train(cfg)
+    if cfg.uses_gp:
+        return reproduce.per_seed_program(lambda k, p: train.init(k, cfg, p), mesh)(keys, priors)
+    return reproduce.per_seed_program(lambda k: train.init(k, cfg), mesh)(keys)
+
+
 def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "paper") -> dict:
     """The hyperparameter fit and each method's whole run, compiled as `gpguided reproduce`
     compiles them (`reproduce.per_seed_program` over the seed mesh), timed apart from compilation."""
@@ -242,10 +251,7 @@ def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "pap
     def one(method):
         cfg = config_lib.preset(preset, method=method)
         train = train_lib.make_train(cfg)
-        if cfg.uses_gp:
-            state = reproduce.per_seed_program(lambda k, p: train.init(k, cfg, p), mesh)(keys, priors)
-        else:
-            state = reproduce.per_seed_program(lambda k: train.init(k, cfg), mesh)(keys)
+        state = initial_states(cfg, mesh, keys, priors)
         run = reproduce.per_seed_program(lambda s: train.run_chunk(s, cfg, cfg.num_updates), mesh)
         t0 = time.perf_counter()
         compiled = run.lower(state).compile()
