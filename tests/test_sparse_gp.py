@@ -630,9 +630,23 @@ def test_segmented_loop_equals_scanned_updates_bit_for_bit(dtype, age_fn, capaci
     assert int(info.added.sum()) > capacity and int((info.deleted_slot >= 0).sum()) > 0
     for got, want in zip(jax.tree.leaves(seg), jax.tree.leaves(ref)):
         np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
-    for got, want in zip(jax.tree.leaves(batched), jax.tree.leaves(ref)):  # the vmapped loop
-        np.testing.assert_allclose(np.asarray(got)[1].astype(float), np.asarray(want).astype(float),
-                                   rtol=1e-4 if dtype == jnp.float32 else 1e-9, atol=1e-6)
+    # The vmapped loop: the same decisions (which pairs join, which slots they take and free),
+    # and float leaves equal to rounding, normwise. Its batched products round differently from
+    # the scan's (how depends on the CPU's vector width), and after 600 updates an entry 1e3 times
+    # smaller than the largest can differ in its second digit in float32, so an elementwise
+    # relative bound is no bound a backward-stable update promises; one of 1e3 eps of the leaf's
+    # largest entry is (measured: ~65 eps in both dtypes, AVX-512 Xeon, 2026-12-02).
+    tol = 1e3 * float(jnp.finfo(dtype).eps)
+    for got, want in zip(jax.tree.leaves(batched), jax.tree.leaves(ref)):
+        got, want = np.asarray(got)[1], np.asarray(want)
+        if not np.issubdtype(want.dtype, np.floating) or want.shape == (capacity + 1, 4):
+            np.testing.assert_array_equal(got, want)  # decisions, slots, stamps and the BVs
+            continue
+        got, want = got.astype(float), want.astype(float)
+        np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
+        fin = np.isfinite(want)
+        assert np.max(np.abs(got - want)[fin], initial=0.0) <= tol * np.max(np.abs(want[fin]),
+                                                                            initial=0.0)
 
 
 def test_update_batch_refuses_unknown_keywords():
