@@ -429,8 +429,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     be.add_argument("--repeats", type=positive_int, default=3, help="runs per figure (median)")
     be.add_argument("--seeds", type=positive_int, default=10, help="seeds of the paper run")
-    be.add_argument("--numpy-updates", type=positive_int, default=5,
-                    help="updates of the per-seed NumPy loop (extrapolated)")
+    be.add_argument("--numpy-updates", type=positive_int, default=50,
+                    help="updates of the per-seed NumPy loop per run (median of --repeats runs, "
+                    "extrapolated to the whole run)")
     be.add_argument("--no-paper-run", action="store_true",
                     help="skip the whole-command timing (the slowest part)")
     be.add_argument("--quick", action="store_true", help="tiny sizes (a smoke test)")
