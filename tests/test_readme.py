@@ -130,6 +130,24 @@ def test_cross_machine_figures_quote_their_files():
     assert m, "current-code sentence not found"
     assert float(m.group(1)) == round(float(now["guided_direction"]["final_iqm"]), 4)
     assert int(m.group(2)) == int(now["guided_direction"]["fail_below_zero_torque"])
+    # the same code on the machine that replaced this one (make results, both dtypes)
+    second = os.path.join(ROOT, "docs", "results", "second_machine_2026-12-02")
+    other = {r["method"]: r for r in csv.DictReader(open(
+        os.path.join(second, "paper_float64_summary.csv")))}
+    m = re.search(rf"reinforce the same to the last digit, gp_pg\s+and guided_variance within "
+                  rf"([\d.e-]+), guided_direction's final IQM {num} with (\d+) seeds below the\s+"
+                  r"zero-torque policy, and float32 and float64 still agree within their intervals",
+                  text)
+    assert m, "second-machine sentence not found"
+    assert other["reinforce"]["final_mean"] == now["reinforce"]["final_mean"]
+    for name in ("gp_pg", "guided_variance"):
+        assert abs(float(other[name]["final_mean"]) - float(now[name]["final_mean"])) < float(m.group(1))
+    assert float(m.group(2)) == round(float(other["guided_direction"]["final_iqm"]), 4)
+    assert int(m.group(3)) == int(other["guided_direction"]["fail_below_zero_torque"])
+    with open(os.path.join(second, "consistency.json")) as f:
+        cons = json.load(f)
+    assert all(r["intervals_overlap"] for r in cons["f32_vs_f64"].values())
+    assert len(cons["f32_vs_f64"]) == 4
 
 
 def _num(text: str) -> float:
