@@ -151,6 +151,46 @@ def bench_table() -> str:
     return "\n".join(lines)
 
 
+SECOND_MACHINE = "bench_2026-12-02_second_machine.json"
+
+
+def bench_machines_table() -> str:
+    """The headline figures of `bench.json` beside the same command's report on the machine that
+    replaced this project's machine on 2026-12-02 (same kind: 2 cores; another CPU)."""
+    reports = []
+    for name in ("bench.json", SECOND_MACHINE):
+        with open(os.path.join(RESULTS, name)) as f:
+            reports.append(json.load(f))
+    rows = [
+        ("whole paper run, empty compile cache [s]", lambda b: b["paper_run"]["cold_s"]["median"], 1, "< 30"),
+        ("the same, warm cache [s]", lambda b: b["paper_run"]["warm_s"]["median"], 1, ""),
+        ("hyperparameter fit, Adam 100 steps, run [s]",
+         lambda b: b["train"]["hyperfit"]["run_s"]["median"], 2, "≤ 3"),
+        ("hyperparameter fit, L-BFGS 15 steps, run [s]",
+         lambda b: b["train"]["hyperfit_alternative"]["run_s"]["median"], 2, ""),
+        ("all four methods' runs [s]", lambda b: sum(
+            m["run_s"]["median"] for m in b["train"]["methods"].values()), 1, ""),
+        ("all four methods' compilation [s]", lambda b: sum(
+            m["compile_s"] for m in b["train"]["methods"].values()), 1, ""),
+        ("gp_pg run [s]", lambda b: b["train"]["methods"]["gp_pg"]["run_s"]["median"], 2, ""),
+        ("NumPy loop, ms per update", lambda b: 1e3 * b["train"]["numpy_gp_pg"][
+            "seconds_per_update_one_seed"], 1, ""),
+        ("**gp_pg: JAX over NumPy**", lambda b: b["train"]["numpy_gp_pg"]["ratio_jax_over_numpy"],
+         1, "≥ 20"),
+        ("sparse GP update alone: JAX over NumPy", lambda b: b["gp"]["ratio"], 1, ""),
+    ]
+    head = "| figure (medians) | " + " | ".join(
+        f"{'the table above' if i == 0 else 'the second machine'}, {b['date']}"
+        for i, b in enumerate(reports)) + " | target |"
+    lines = [head, "|---|---|---|---|"]
+    for label, get, digits, target in rows:
+        lines.append(f"| {label} | " + " | ".join(f"{get(b):.{digits}f}" for b in reports)
+                     + f" | {target} |")
+    lines.append("")
+    lines.append(_source("bench.json", SECOND_MACHINE))
+    return "\n".join(lines)
+
+
 SCALING_RUNS = ("scaling", "scaling_vmap")  # the CPU default; one vmapped batch on one device
 
 
@@ -231,6 +271,7 @@ TABLES = {
     "failures": failures_table,
     "consistency": consistency_table,
     "bench": bench_table,
+    "bench_machines": bench_machines_table,
     "profile": profile_table,
     "scaling": scaling_table,
     "swingup": swingup_table,
