@@ -164,12 +164,13 @@ def t_interval(samples, axis: int = 0, confidence: float = 0.95):
     NumPy/SciPy (not traced): for summaries of finished runs. The half-width is NaN for one sample.
     """
     import numpy as np
-    from scipy import stats
+
+    from gpguided_jax import stats
 
     x = np.asarray(samples, dtype=float)
     n = x.shape[axis]
     mean = x.mean(axis=axis)
     if n < 2:
         return mean, np.full_like(mean, np.nan)
-    half = stats.t.ppf(0.5 + confidence / 2, n - 1) * x.std(axis=axis, ddof=1) / np.sqrt(n)
+    half = stats.t_quantile(0.5 + confidence / 2, n - 1) * x.std(axis=axis, ddof=1) / np.sqrt(n)
     return mean, half

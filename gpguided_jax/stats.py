@@ -36,6 +36,14 @@ def trim_mean(a, proportiontocut: float, axis: int = 0) -> np.ndarray:
     return np.mean(part[tuple(keep)], axis=axis)
 
 
+def t_quantile(q, df):
+    """``scipy.stats.t.ppf(q, df)``: the same function (`scipy.special.stdtrit`, which scipy.stats
+    calls), the same bits, without importing scipy.stats (0.4 s of every summary's start-up)."""
+    from scipy import special
+
+    return special.stdtrit(df, q)
+
+
 def iqm(x) -> float:
     """Interquartile mean: the mean of the middle 50% (25% trimmed from each end)."""
     return float(trim_mean(np.asarray(x, float).ravel(), proportiontocut=0.25))

@@ -18,6 +18,12 @@ def test_trim_mean_is_scipys_bit_for_bit(shape, axis, cut):
                                   sp_stats.trim_mean(a, cut, axis=axis))
 
 
+@pytest.mark.parametrize("df", [1, 2, 9, 99, 1000])
+@pytest.mark.parametrize("q", [0.5, 0.9, 0.975, 0.995])
+def test_t_quantile_is_scipys_bit_for_bit(q, df):
+    assert stats.t_quantile(q, df) == sp_stats.t.ppf(q, df)
+
+
 def test_trim_mean_refuses_a_proportion_above_one_half():
     with pytest.raises(ValueError, match="too big"):
         stats.trim_mean(np.arange(4.0), 0.8)
