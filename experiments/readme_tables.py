@@ -112,7 +112,7 @@ def bench_table() -> str:
     with open(os.path.join(RESULTS, "bench.json")) as f:
         b = json.load(f)
     t, pr = b["train"], b["paper_run"]
-    lines = ["| figure | median [min, max] of 3 runs | target |", "|---|---|---|"]
+    lines = [f"| figure | median [min, max] of {b['repeats']} runs | target |", "|---|---|---|"]
 
     def cell(x, unit="s", digits=1):
         return f"{x['median']:.{digits}f} {unit} [{x['min']:.{digits}f}, {x['max']:.{digits}f}]"
@@ -141,10 +141,10 @@ def bench_table() -> str:
                  "them): "
                  f"JAX / NumPy updates per second | {g['jax_updates_per_s']:,.0f} / "
                  f"{g['numpy_updates_per_s']:,.0f} = {g['ratio']:.1f}x | |")
-    e = b["env"]
-    lines.append("| pendulum steps per second, 1 / 10 / 1000 vmapped episodes | "
-                 + " / ".join(f"{e[k]['steps_per_s'] / 1e6:.2f} M" for k in
-                              ("episodes_1", "episodes_10", "episodes_1000")) + " | |")
+    e = sorted(b["env"].items(), key=lambda kv: int(kv[0].removeprefix("episodes_")))
+    lines.append("| pendulum steps per second, "
+                 + " / ".join(k.removeprefix("episodes_") for k, _ in e) + " vmapped episodes | "
+                 + " / ".join(f"{v['steps_per_s'] / 1e6:.2f} M" for _, v in e) + " | |")
     lines.append("")
     lines.append(f"{b['cpu_count']} CPU cores, jax {b['jax']}, {b['dtype']}, {b['date']}. "
                  + _source("bench.json"))
