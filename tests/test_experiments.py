@@ -113,3 +113,10 @@ def test_gpguided_bench_quick_writes_the_report_the_readme_table_is_made_from(tm
     assert "median [min, max] of 2 runs" in table
     assert f"{report['paper_run']['cold_s']['median']:.1f} s" in table
     assert f"{n['ratio_jax_over_numpy']:.1f}" in tables.bench_machines_table()
+
+
+def test_hyperfit_adam_schedules_compares_each_schedule_with_the_default():
+    out = _run(["experiments/hyperfit_adam_schedules.py", "--seeds", "1", "--schedules", "1"])
+    (row,) = out["schedules"]
+    assert len(row["minus_default_per_pair"]) == 1 and row["max"] == row["minus_default_per_pair"][0]
+    assert row["within_tolerance"] == (row["max"] <= out["tolerance_nats_per_pair"])

@@ -398,3 +398,29 @@ def test_second_machine_prose_quotes_its_file():
     assert b["warm"] < 30 and a["warm"] < 30
     assert (f"the warm run is {b['warm']:.1f} s, the cold one {b['cold']:.1f} s, the ratio "
             f"{b['ratio']:.1f}× and the fit {b['fit']:.2f} s") in text
+
+
+def test_shorter_adam_fit_prose_quotes_its_files():
+    """The Benchmarks sentence on the 50-step Adam fit: its schedule keeps the tolerance on every
+    tuning seed (schedules.json), and the paper-run figures are those of adam50_fit's summaries
+    and of the default fit's run on the same machine."""
+    import csv
+
+    text = " ".join(_readme().split())
+    res = os.path.join(ROOT, "docs", "results")
+    with open(os.path.join(res, "adam50_fit", "schedules.json")) as f:
+        sched = json.load(f)
+    (row,) = [r for r in sched["schedules"] if (r["steps"], r["learning_rate"]) == (50, 0.15)]
+    assert row["seeds_better"] == len(sched["seeds"]) and row["within_tolerance"]
+
+    def gd(path):
+        rows = {r["method"]: r for r in csv.DictReader(open(os.path.join(res, path)))}
+        return rows["guided_direction"]
+
+    short64, short32 = gd("adam50_fit/paper_float64_summary.csv"), gd("adam50_fit/paper_float32_summary.csv")
+    default64 = gd("second_machine_2026-12-02/paper_float64_summary.csv")
+    sentence = (f"a float64 final IQM of {float(short64['final_iqm']):.4f} with "
+                f"{short64['failing_seeds']} failing seeds against {float(default64['final_iqm']):.4f} "
+                f"with {default64['failing_seeds']} for the default fit on the same machine, and "
+                f"{short32['failing_seeds']} failing seeds in float32")
+    assert sentence in text, sentence
