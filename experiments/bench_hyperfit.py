@@ -51,11 +51,9 @@ def main(argv=None) -> int:
     prog = train_lib.make_program(cfg)
     keys = reproduce.seed_keys(range(100, 100 + args.seeds))  # tuning seeds: not a result
 
-    def data(key):
-        key_data, key_subset = jax.random.split(key)
-        xs, ys = train_lib.collect(prog, key_data, cfg)
+    def data(key):  # training's fitting subset; targets centred on the mean of all pairs
+        xs, ys, idx = train_lib.fit_subset(prog, key, cfg)
         ys = ys - jnp.mean(ys)
-        idx = jax.random.choice(key_subset, xs.shape[0], (cfg.hyperfit_subset,), replace=False)
         return xs, ys, xs[idx], ys[idx]
 
     xs, ys, out_xsub, out_ysub = jax.jit(jax.vmap(data))(keys)

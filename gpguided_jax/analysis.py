@@ -172,5 +172,5 @@ def t_interval(samples, axis: int = 0, confidence: float = 0.95):
     mean = x.mean(axis=axis)
     if n < 2:
         return mean, np.full_like(mean, np.nan)
-    half = stats.t_quantile(0.5 + confidence / 2, n - 1) * x.std(axis=axis, ddof=1) / np.sqrt(n)
+    half = stats.t_half_width(x, axis=axis, q=0.5 + confidence / 2)
     return mean, half

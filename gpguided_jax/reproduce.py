@@ -492,7 +492,7 @@ def summarise(records_by_method: dict[str, dict], zero_torque: float | None = No
         curves = np.asarray(rec["mean_reward"], float)
         final = final_performance(curves)
         n = len(final)
-        half = stats_lib.t_quantile(0.975, n - 1) * final.std(ddof=1) / np.sqrt(n) if n > 1 else np.nan
+        half = stats_lib.t_half_width(final) if n > 1 else np.nan
         lo, hi = stats_lib.bootstrap_ci(final, reps=reps) if n > 1 else (np.nan, np.nan)
         tail = max(1, int(round(0.1 * curves.shape[-1])))
         row = dict(
@@ -595,8 +595,7 @@ def plot_fig5(results: dict[str, np.ndarray], out_dir: str) -> list[str]:
         for m, curves in zip(results["methods"], data):
             n = curves.shape[0]
             mean = curves.mean(0)
-            half = (stats_lib.t_quantile(0.975, n - 1) * curves.std(0, ddof=1) / np.sqrt(n)
-                    if n > 1 else 0 * mean)
+            half = stats_lib.t_half_width(curves) if n > 1 else 0 * mean
             x = np.arange(1, curves.shape[1] + 1)
             ax.plot(x, mean, label=str(m))
             ax.fill_between(x, mean - half, mean + half, alpha=0.25)

@@ -44,6 +44,14 @@ def t_quantile(q, df):
     return special.stdtrit(df, q)
 
 
+def t_half_width(samples, axis: int = 0, q: float = 0.975):
+    """Half-width of the Student-t interval of the mean along `axis` (q = 0.975: 95%), for two or
+    more samples."""
+    x = np.asarray(samples, float)
+    n = x.shape[axis]
+    return t_quantile(q, n - 1) * x.std(axis=axis, ddof=1) / np.sqrt(n)
+
+
 def iqm(x) -> float:
     """Interquartile mean: the mean of the middle 50% (25% trimmed from each end)."""
     return float(trim_mean(np.asarray(x, float).ravel(), proportiontocut=0.25))

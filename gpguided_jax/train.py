@@ -382,15 +382,24 @@ def collect(prog: Program, key, cfg: TrainConfig):
     return xs, returns.reshape(-1)
 
 
+def fit_subset(prog: Program, key, cfg: TrainConfig):
+    """The hyperparameter fit's data: every collected (x, Ret) pair and the indices of the random
+    subset of `hyperfit_subset` pairs the likelihood is taken on (None: all pairs, when there are
+    no more). Returns (xs, ys, idx)."""
+    key_data, key_subset = jax.random.split(key)
+    xs, ys = collect(prog, key_data, cfg)
+    n = min(prog.config.hyperfit_subset, xs.shape[0])
+    if n == xs.shape[0]:
+        return xs, ys, None
+    return xs, ys, jax.random.choice(key_subset, xs.shape[0], (n,), replace=False)
+
+
 def fit_prior(prog: Program, key, cfg: TrainConfig) -> GPPrior:
     """The GP's kernel (exact marginal likelihood on a random subset, paper §VI) and prior mean."""
     static = prog.config
-    key_data, key_subset = jax.random.split(key)
-    xs, ys = collect(prog, key_data, cfg)
+    xs, ys, idx = fit_subset(prog, key, cfg)
     mean = jnp.mean(ys)  # the prior mean of Q_GP; the kernel is fitted to centred returns
-    n = min(static.hyperfit_subset, xs.shape[0])
-    if n < xs.shape[0]:
-        idx = jax.random.choice(key_subset, xs.shape[0], (n,), replace=False)
+    if idx is not None:
         xs, ys = xs[idx], ys[idx]
     kernel = hyperfit.fit(xs, ys - mean, num_steps=static.hyperfit_steps,
                           optimizer=static.hyperfit_optimizer).params
