@@ -605,9 +605,11 @@ def _adversarial_stream(n, seed, dtype):
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
 @pytest.mark.parametrize("age_fn, capacity", [("exp", 12), ("logit", 30)])
 def test_segmented_loop_equals_scanned_updates_bit_for_bit(dtype, age_fn, capacity):
-    """One GP takes in a batch through while-loop segments (no per-pair lax.cond), a vmapped batch
-    through `update_with_info` under lax.scan: the same state and info, bit for bit, on a stream
-    that fills the budget, exchanges BVs, and holds duplicates, non-finite and padded pairs."""
+    """One GP takes in a batch through while-loop segments (no per-pair lax.cond), or through the
+    scanned loop (`update_with_info`'s steps under lax.scan), both on buffers padded to a multiple
+    of 8 slots: the same state and info, bit for bit, on a stream that fills the budget, exchanges
+    BVs, and holds duplicates, non-finite and padded pairs. `update_with_info` pair by pair (no
+    padding) and a vmapped batch: the same decisions, the numbers equal to rounding."""
     n = 600
     xs, ys, valid = _adversarial_stream(n, 3, dtype)
     ts = jnp.arange(n) // 40
@@ -623,21 +625,26 @@ def test_segmented_loop_equals_scanned_updates_bit_for_bit(dtype, age_fn, capaci
         return jax.lax.scan(body, s, (x, y, ts, valid))
 
     ref = jax.jit(scanned)(state0, xs, ys)
+    scan = jax.jit(lambda s, x, y: sparse_gp.update_batch(
+        s, x, y, hyper, ts, valid=valid, with_info=True, loop="scan", **kw))(state0, xs, ys)
     batched = jax.jit(jax.vmap(lambda s, x, y: sparse_gp.update_batch(
         s, x, y, hyper, ts, valid=valid, with_info=True, **kw)))(
         *jax.tree.map(lambda a: jnp.stack([a, a]), (state0, xs, ys)))
     info = ref[1]
     assert int(info.added.sum()) > capacity and int((info.deleted_slot >= 0).sum()) > 0
-    for got, want in zip(jax.tree.leaves(seg), jax.tree.leaves(ref)):
+    assert sparse_gp.padded_slots(capacity + 1) > capacity + 1  # the loops do pad here
+    for got, want in zip(jax.tree.leaves(seg), jax.tree.leaves(scan)):
         np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
-    # The vmapped loop: the same decisions (which pairs join, which slots they take and free),
-    # and float leaves equal to rounding, normwise. Its batched products round differently from
-    # the scan's (how depends on the CPU's vector width), and after 600 updates an entry 1e3 times
-    # smaller than the largest can differ in its second digit in float32, so an elementwise
-    # relative bound is no bound a backward-stable update promises; one of 1e3 eps of the leaf's
-    # largest entry is (measured: ~65 eps in both dtypes, AVX-512 Xeon, 2026-12-02).
+    # Pair by pair, and the vmapped loop: the same decisions (which pairs join, which slots they
+    # take and free), and float leaves equal to rounding, normwise. Padded and unpadded buffers,
+    # and batched products, round differently (how depends on the CPU's vector width), and after
+    # 600 updates an entry 1e3 times smaller than the largest can differ in its second digit in
+    # float32, so an elementwise relative bound is no bound a backward-stable update promises; one
+    # of 1e3 eps of the leaf's largest entry is (measured: ~65 eps in both dtypes, AVX-512 Xeon,
+    # 2026-12-02).
     tol = 1e3 * float(jnp.finfo(dtype).eps)
-    for got, want in zip(jax.tree.leaves(batched), jax.tree.leaves(ref)):
+    for got, want in [(a, b) for other in (jax.tree.map(lambda a: jnp.stack([a, a]), seg), batched)
+                      for a, b in zip(jax.tree.leaves(other), jax.tree.leaves(ref))]:
         got, want = np.asarray(got)[1], np.asarray(want)
         if not np.issubdtype(want.dtype, np.floating) or want.shape == (capacity + 1, 4):
             np.testing.assert_array_equal(got, want)  # decisions, slots, stamps and the BVs
