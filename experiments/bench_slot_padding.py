@@ -87,13 +87,13 @@ def bench_gp_update(mesh, dtype, repeats: int, seeds: int = 10, n: int = 3000) -
     return report
 
 
-def bench_train(mesh, keys, dtype: str, methods, repeats: int) -> dict:
-    cfg = config_lib.preset("paper", method="gp_pg", dtype=dtype)
+def bench_train(mesh, keys, dtype: str, methods, repeats: int, preset: str = "paper") -> dict:
+    cfg = config_lib.preset(preset, method="gp_pg", dtype=dtype)
     fit = reproduce.per_seed_program(train_lib.make_train(cfg).fit_kernel_for_seed, mesh)
     priors = fit(keys)
     out = {}
     for method in methods:
-        c = config_lib.preset("paper", method=method, dtype=dtype)
+        c = config_lib.preset(preset, method=method, dtype=dtype)
         train = train_lib.make_train(c)
         state = bench.initial_states(c, mesh, keys, priors)
 
@@ -120,7 +120,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--train-repeats", type=int, default=5)
     parser.add_argument("--methods", nargs="+", default=["gp_pg", "guided_variance",
                                                          "guided_direction"])
-    parser.add_argument("--quick", action="store_true", help="tiny sizes (for the tests)")
+    parser.add_argument("--quick", action="store_true",
+                        help="tiny sizes, the tiny preset's gp_pg, one run of each (for the tests)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     single_threaded_lapack()
@@ -136,13 +137,13 @@ def main(argv=None) -> dict:
               "devices": int(mesh.devices.size), "quick": args.quick,
               "slot_multiple": {k: v for k, v in VARIANTS.items()}}
     n = 200 if args.quick else 3000
-    report["gp_update"] = {d: bench_gp_update(mesh, getattr(jnp, d), args.gp_repeats, seeds, n)
+    gp_repeats = 1 if args.quick else args.gp_repeats
+    report["gp_update"] = {d: bench_gp_update(mesh, getattr(jnp, d), gp_repeats, seeds, n)
                            for d in ("float64", "float32")}
-    if args.quick:
-        report["train"] = {}
-    else:
-        report["train"] = {"float64": bench_train(mesh, keys, "float64", args.methods,
-                                                  args.train_repeats)}
+    report["preset"] = "tiny" if args.quick else "paper"
+    report["train"] = {"float64": bench_train(
+        mesh, keys, "float64", ["gp_pg"] if args.quick else args.methods,
+        1 if args.quick else args.train_repeats, report["preset"])}
     report["wall_s"] = time.perf_counter() - t0
     bench.print_report(report, args.out)
     return report

@@ -152,13 +152,17 @@ def bench_table() -> str:
 
 
 SECOND_MACHINE = "bench_2026-12-02_second_machine.json"
+THIRD_MACHINE = "bench_2026-12-02_third_machine.json"
+MACHINE_LABELS = ("the table above", "the second machine", "a third machine, padded GP buffers")
 
 
 def bench_machines_table() -> str:
-    """The headline figures of `bench.json` beside the same command's report on the machine that
-    replaced this project's machine on 2026-12-02 (same kind: 2 cores; another CPU)."""
+    """The headline figures of `bench.json` beside the same command's reports on the machines that
+    replaced this project's machine on 2026-12-02 (same kind: 2 cores; other CPUs). The third ran
+    the code with the GP update's padded buffers (`sparse_gp.padded_slots`)."""
+    names = ("bench.json", SECOND_MACHINE, THIRD_MACHINE)
     reports = []
-    for name in ("bench.json", SECOND_MACHINE):
+    for name in names:
         with open(os.path.join(RESULTS, name)) as f:
             reports.append(json.load(f))
     rows = [
@@ -180,14 +184,13 @@ def bench_machines_table() -> str:
         ("sparse GP update alone: JAX over NumPy", lambda b: b["gp"]["ratio"], 1, ""),
     ]
     head = "| figure (medians) | " + " | ".join(
-        f"{'the table above' if i == 0 else 'the second machine'}, {b['date']}"
-        for i, b in enumerate(reports)) + " | target |"
-    lines = [head, "|---|---|---|---|"]
+        f"{label}, {b['date']}" for label, b in zip(MACHINE_LABELS, reports)) + " | target |"
+    lines = [head, "|---" * (len(reports) + 2) + "|"]
     for label, get, digits, target in rows:
         lines.append(f"| {label} | " + " | ".join(f"{get(b):.{digits}f}" for b in reports)
                      + f" | {target} |")
     lines.append("")
-    lines.append(_source("bench.json", SECOND_MACHINE))
+    lines.append(_source(*names))
     return "\n".join(lines)
 
 
@@ -265,6 +268,35 @@ def swingup_table() -> str:
         return f.read().rstrip("\n") + "\n\n" + _source("swingup/heldout.md")
 
 
+def slot_padding_table() -> str:
+    """`experiments/bench_slot_padding.py`: the GP update and the GP methods' paper runs on padded
+    (104) and unpadded (101) slot buffers, timed in turn."""
+    with open(os.path.join(RESULTS, "slot_padding.json")) as f:
+        r = json.load(f)
+    lines = ["| what | dtype | unpadded [s] | padded [s] | padded / unpadded | outputs |",
+             "|---|---|---|---|---|---|"]
+    for dtype, g in r["gp_update"].items():
+        t = g["run_s"]
+        lines.append(f"| sparse GP update alone, {r['seeds']} streams × 3000 pairs | {dtype} | "
+                     f"{t['unpadded']['median']:.3f} | {t['padded']['median']:.3f} | "
+                     f"{g['padded_over_unpadded']:.3f} | same basis vectors: "
+                     f"{'yes' if g['same_basis_vectors'] else 'no'} |")
+    for dtype, methods in r["train"].items():
+        for m, g in methods.items():
+            t = g["run_s"]
+            lines.append(f"| {m}, whole paper run, {r['seeds']} seeds | {dtype} | "
+                         f"{t['unpadded']['median']:.2f} | {t['padded']['median']:.2f} | "
+                         f"{g['padded_over_unpadded']:.3f} | max \\|Δ\\| reward/step "
+                         f"{g['max_abs_difference_mean_reward']:.0e} |")
+    runs = {len(g["run_s"]["padded"]["runs"]) for g in r["gp_update"].values()}
+    runs_train = {len(g["run_s"]["padded"]["runs"]) for d in r["train"].values() for g in d.values()}
+    lines.append("")
+    lines.append(f"Medians of {min(runs)} (GP update) and {min(runs_train) if runs_train else 0} "
+                 f"(training) runs in turn, {r['devices']} devices, {r['date']}. "
+                 + _source("slot_padding.json"))
+    return "\n".join(lines)
+
+
 TABLES = {
     "fig5": fig5_table,
     "improvement": improvement_table,
@@ -272,6 +304,7 @@ TABLES = {
     "consistency": consistency_table,
     "bench": bench_table,
     "bench_machines": bench_machines_table,
+    "slot_padding": slot_padding_table,
     "profile": profile_table,
     "scaling": scaling_table,
     "swingup": swingup_table,

@@ -77,15 +77,16 @@ False, alpha 0 and zero rows and columns in T and Z. Non-finite x or y (or valid
 state unchanged. Everything is branch-free (`jnp.where`), jit- and vmap-able, O(M^2) per update.
 
 Inside `update_batch`'s loops the buffers are widened to a multiple of 8 slots (`padded_slots`:
-104 for M = 100) and narrowed again on the way out. The extra slots are
-inactive and never written: the first free slot, where an insertion goes, is always among the
-first M + 1 (at most M are active before it). The state the caller sees has M + 1 slots. With rows of 101 numbers XLA:CPU's
-vectorised loops over T and Z run remainder code on every row; with 104 the GP update alone is
-about 11% faster in float64 and 15% in float32, although the buffers hold 6% more numbers
-(`experiments/bench_slot_padding.py`, docs/results/slot_padding.json). The extra zeros change only
-the rounding of some sums, so `update_batch` equals `update_with_info` applied pair by pair (which
-does not pad) in its decisions and to rounding in its numbers, and its two loops equal each other
-bit for bit.
+104 for M = 100) and narrowed again on the way out. The extra slots are inactive and never
+written: the first free slot, where an insertion goes, is always among the first M + 1 (at most M
+are active before it). The state the caller sees has M + 1 slots. Measured on the CPU, in turn:
+with 104 slots the GP update alone is about 14% faster in float64 and 12% in float32 than with
+101, although the buffers hold 6% more numbers (`experiments/bench_slot_padding.py`,
+docs/results/slot_padding.json; in a scratch run 112 slots were not faster than 104;
+presumably rows whose length is a multiple of the vector width keep XLA:CPU's loops out of their
+remainder code). The extra zeros change only the rounding of some sums, so `update_batch` equals
+`update_with_info` applied pair by pair (which does not pad) in its decisions and to rounding in
+its numbers, and its two loops equal each other bit for bit.
 """
 
 import functools

@@ -120,3 +120,12 @@ def test_hyperfit_adam_schedules_compares_each_schedule_with_the_default():
     (row,) = out["schedules"]
     assert len(row["minus_default_per_pair"]) == 1 and row["max"] == row["minus_default_per_pair"][0]
     assert row["within_tolerance"] == (row["max"] <= out["tolerance_nats_per_pair"])
+
+
+def test_bench_slot_padding_compares_padded_and_unpadded_buffers():
+    out = _run(["experiments/bench_slot_padding.py", "--quick"])
+    for row in out["gp_update"].values():  # the same decisions either way
+        assert row["same_basis_vectors"] and row["slots"] == {"unpadded": 101, "padded": 104}
+        assert row["run_s"]["padded"]["median"] > 0 and row["padded_over_unpadded"] > 0
+    gp_pg = out["train"]["float64"]["gp_pg"]  # the same run up to rounding
+    assert gp_pg["max_abs_difference_mean_reward"] < 1e-6 and gp_pg["padded_over_unpadded"] > 0

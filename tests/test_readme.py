@@ -119,17 +119,30 @@ def test_cross_machine_figures_quote_their_files():
         assert run["reinforce"] == runs[0]["reinforce"]
         for name in ("gp_pg", "guided_variance"):
             assert abs(float(run[name]["final_mean"]) - float(runs[0][name]["final_mean"])) < 1e-11
-    # the current results: the same machine, the code of the blocked-inverse fit
-    now = {r["method"]: r for r in csv.DictReader(open(
-        os.path.join(ROOT, "docs", "results", "paper_float64", "summary.csv")))}
-    assert now["reinforce"]["final_mean"] == runs[2]["reinforce"]["final_mean"]
+    # the fourth run: the same machine, the code of the blocked-inverse fit (before the padding)
+    fourth = {r["method"]: r for r in csv.DictReader(open(
+        os.path.join(ROOT, "docs", "results", "unpadded_2026-12-02", "paper_float64_summary.csv")))}
+    assert fourth["reinforce"]["final_mean"] == runs[2]["reinforce"]["final_mean"]
     for name in ("gp_pg", "guided_variance"):
-        assert abs(float(now[name]["final_mean"]) - float(runs[2][name]["final_mean"])) < 1e-13
+        assert abs(float(fourth[name]["final_mean"]) - float(runs[2][name]["final_mean"])) < 1e-13
     m = re.search(rf"guided_direction's final IQM is\s+{num} with (\d+) seeds below the zero-torque",
                   text)
+    assert m, "fourth-run sentence not found"
+    assert float(m.group(1)) == round(float(fourth["guided_direction"]["final_iqm"]), 4)
+    assert int(m.group(2)) == int(fourth["guided_direction"]["fail_below_zero_torque"])
+    # the current results: the padded GP buffers, against the fourth run
+    now = {r["method"]: r for r in csv.DictReader(open(
+        os.path.join(ROOT, "docs", "results", "paper_float64", "summary.csv")))}
+    m = re.search(rf"against the fourth, reinforce the same to the last digit, gp_pg and "
+                  rf"guided_variance\s+within ([\d.e-]+), and guided_direction's final IQM is "
+                  rf"{num} with (\d+) seeds below the zero-torque\s+policy", text)
     assert m, "current-code sentence not found"
-    assert float(m.group(1)) == round(float(now["guided_direction"]["final_iqm"]), 4)
-    assert int(m.group(2)) == int(now["guided_direction"]["fail_below_zero_torque"])
+    assert now["reinforce"]["final_mean"] == fourth["reinforce"]["final_mean"]
+    for name in ("gp_pg", "guided_variance"):
+        assert abs(float(now[name]["final_mean"]) - float(fourth[name]["final_mean"])) < float(m.group(1))
+    assert float(m.group(2)) == round(float(now["guided_direction"]["final_iqm"]), 4)
+    assert int(m.group(3)) == int(now["guided_direction"]["fail_below_zero_torque"])
+    now = fourth  # the second machine ran the fourth run's code
     # the same code on the machine that replaced this one (make results, both dtypes)
     second = os.path.join(ROOT, "docs", "results", "second_machine_2026-12-02")
     other = {r["method"]: r for r in csv.DictReader(open(
@@ -423,4 +436,73 @@ def test_shorter_adam_fit_prose_quotes_its_files():
                 f"{short64['failing_seeds']} failing seeds against {float(default64['final_iqm']):.4f} "
                 f"with {default64['failing_seeds']} for the default fit on the same machine, and "
                 f"{short32['failing_seeds']} failing seeds in float32")
+    assert sentence in text, sentence
+
+
+def test_slot_padding_prose_quotes_its_file():
+    """The sparse-GP section's figures for the padded buffers are those of slot_padding.json, and
+    the module's notes quote the same rounded ratios."""
+    text = " ".join(_readme().split())
+    with open(os.path.join(ROOT, "docs", "results", "slot_padding.json")) as f:
+        pad = json.load(f)
+    f64 = pad["gp_update"]["float64"]["padded_over_unpadded"]
+    f32 = pad["gp_update"]["float32"]["padded_over_unpadded"]
+    gp_pg = pad["train"]["float64"]["gp_pg"]["padded_over_unpadded"]
+    sentence = (f"The GP update alone is {f64:.2f}× the time in float64 and {f32:.2f}× in float32, "
+                f"gp_pg's paper run {gp_pg:.2f}×")
+    assert sentence in text, sentence
+    assert all(g["same_basis_vectors"] for g in pad["gp_update"].values())
+    assert pad["slot_multiple"] == {"unpadded": 1, "padded": 8}
+    with open(os.path.join(ROOT, "gpguided_jax", "sparse_gp.py")) as f:
+        notes = " ".join(f.read().split())
+    assert (f"the GP update alone is about {round(100 * (1 - f64))}% faster in float64 and "
+            f"{round(100 * (1 - f32))}% in float32") in notes
+
+
+def test_third_machine_prose_quotes_its_files():
+    """The Benchmarks paragraph on the third machine: its figures are those of
+    bench_2026-12-02_third_machine.json and bench.json, and the estimate without the padding is
+    the quotient it claims (slot_padding.json)."""
+    text = " ".join(_readme().split())
+    res = os.path.join(ROOT, "docs", "results")
+    with open(os.path.join(res, "bench_2026-12-02_third_machine.json")) as f:
+        third = json.load(f)
+    with open(os.path.join(res, "bench.json")) as f:
+        first = json.load(f)
+    with open(os.path.join(res, "slot_padding.json")) as f:
+        pad = json.load(f)
+    t = third["train"]
+    ratio = t["numpy_gp_pg"]["ratio_jax_over_numpy"]
+    run = t["methods"]["gp_pg"]["run_s"]["median"]
+    factor = pad["train"]["float64"]["gp_pg"]["padded_over_unpadded"]
+    cold, warm = third["paper_run"]["cold_s"]["median"], third["paper_run"]["warm_s"]["median"]
+    sentence = (f"gp_pg's ratio is {ratio:.1f}×, over its target, and the GP update alone "
+                f"{third['gp']['ratio']:.1f}×; the whole run is {cold:.1f} s "
+                f"cold and {warm:.1f} s warm, and the fit takes "
+                f"{t['hyperfit']['run_s']['median']:.2f} s. Only the ratio meets its target there.")
+    assert sentence in text, sentence
+    assert ratio >= 20 and third["paper_run"]["cold_s"]["median"] >= 30
+    assert t["hyperfit"]["run_s"]["median"] > 3 and third["paper_run"]["warm_s"]["median"] >= 30
+    ms = (f"the NumPy loop took {1e3 * t['numpy_gp_pg']['seconds_per_update_one_seed']:.1f} ms per "
+          f"update against {1e3 * first['train']['numpy_gp_pg']['seconds_per_update_one_seed']:.1f} ms "
+          f"on the first machine")
+    assert ms in text, ms
+    unpadded = run / factor
+    without = (f"about {run:.2f} s / {factor:.3f} = {unpadded:.2f} s, a ratio of about "
+               f"{t['numpy_gp_pg']['extrapolated_run_s'] / unpadded:.1f}×")
+    assert without in text, without
+
+
+def test_status_quotes_the_third_machine():
+    text = " ".join(_readme().split())
+    with open(os.path.join(ROOT, "docs", "results", "bench_2026-12-02_third_machine.json")) as f:
+        b = json.load(f)
+    with open(os.path.join(ROOT, "docs", "results", "slot_padding.json")) as f:
+        pad = json.load(f)
+    speedup = 1 / pad["train"]["float64"]["gp_pg"]["padded_over_unpadded"]
+    sentence = (f"(about {speedup:.2f}× faster for gp_pg), the ratio is "
+                f"{b['train']['numpy_gp_pg']['ratio_jax_over_numpy']:.1f}× (met), the cold run "
+                f"{b['paper_run']['cold_s']['median']:.1f} s, the warm one "
+                f"{b['paper_run']['warm_s']['median']:.1f} s and the fit "
+                f"{b['train']['hyperfit']['run_s']['median']:.2f} s (missed)")
     assert sentence in text, sentence
