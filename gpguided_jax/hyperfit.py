@@ -160,21 +160,12 @@ def nlml_and_grad(log_hyper: LogParams, xs: jax.Array, ys: jax.Array, jitter: fl
 _INVERSE_BLOCK = 128  # fewer levels compile faster (64: +0.9 s for the paper fit), at the same speed
 
 
-_SPLIT_MULTIPLE = 1
-
-
-def _split(n: int) -> int:
-    """Rows of the first block when an n-row block is halved."""
-    m = _SPLIT_MULTIPLE
-    return min(n - 1, -(-(n // 2) // m) * m) if m > 1 else n // 2
-
-
 def _lower_inverse(L):
     """L^{-1} of a lower-triangular L as nested blocks: a matrix, or (X11, X21, X22)."""
     n = L.shape[0]
     if n <= _INVERSE_BLOCK:
         return jax.scipy.linalg.solve_triangular(L, jnp.eye(n, dtype=L.dtype), lower=True)
-    h = _split(n)
+    h = n // 2
     X11 = _lower_inverse(L[:h, :h])
     X22 = _lower_inverse(L[h:, h:])
     return X11, -_lower_times(X22, _times_lower(L[h:, :h], X11)), X22

@@ -36,7 +36,9 @@ def test_bench_gp_loop_compares_the_two_loops_bitwise():
     out = _run(["experiments/bench_gp_loop.py", "--seeds", "2", "--repeats", "1",
                 "--methods", "gp_pg", "--preset", "tiny"])
     row = out["methods"]["gp_pg"]
-    assert row["records_and_state_equal_bitwise"] is True
+    # Bit for bit before the padded GP buffers; since them XLA compiles the two loops' surroundings
+    # in the training program differently, and the records agree to rounding (~1e-11 here).
+    assert row["max_abs_float_difference"] < 1e-8
     assert row["scan"]["run_s_median"] > 0 and row["segments"]["run_s_median"] > 0
 
 
@@ -106,8 +108,9 @@ def test_gpguided_bench_quick_writes_the_report_the_readme_table_is_made_from(tm
         "readme_tables", os.path.join(ROOT, "experiments", "readme_tables.py"))
     tables = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tables)
-    tables.RESULTS = str(tmp_path)  # bench.json and the second machine's report, both this one
+    tables.RESULTS = str(tmp_path)  # bench.json and the other machines' reports, all this one
     (tmp_path / tables.SECOND_MACHINE).write_text(path.read_text())
+    (tmp_path / tables.THIRD_MACHINE).write_text(path.read_text())
     table = tables.bench_table()
     assert f"**{n['ratio_jax_over_numpy']:.1f}x**" in table
     assert "median [min, max] of 2 runs" in table
