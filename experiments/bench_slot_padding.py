@@ -121,7 +121,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--methods", nargs="+", default=["gp_pg", "guided_variance",
                                                          "guided_direction"])
     parser.add_argument("--quick", action="store_true",
-                        help="tiny sizes, the tiny preset's gp_pg, one run of each (for the tests)")
+                        help="tiny sizes, float64 only, the tiny preset's gp_pg, one run of each (tests)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     single_threaded_lapack()
@@ -138,8 +138,9 @@ def main(argv=None) -> dict:
               "slot_multiple": {k: v for k, v in VARIANTS.items()}}
     n = 200 if args.quick else 3000
     gp_repeats = 1 if args.quick else args.gp_repeats
+    dtypes = ("float64",) if args.quick else ("float64", "float32")
     report["gp_update"] = {d: bench_gp_update(mesh, getattr(jnp, d), gp_repeats, seeds, n)
-                           for d in ("float64", "float32")}
+                           for d in dtypes}
     report["preset"] = "tiny" if args.quick else "paper"
     report["train"] = {"float64": bench_train(
         mesh, keys, "float64", ["gp_pg"] if args.quick else args.methods,
