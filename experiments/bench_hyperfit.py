@@ -27,7 +27,6 @@ import sys
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 import gpguided_jax
@@ -51,12 +50,7 @@ def main(argv=None) -> int:
     prog = train_lib.make_program(cfg)
     keys = reproduce.seed_keys(range(100, 100 + args.seeds))  # tuning seeds: not a result
 
-    def data(key):  # training's fitting subset; targets centred on the mean of all pairs
-        xs, ys, idx = train_lib.fit_subset(prog, key, cfg)
-        ys = ys - jnp.mean(ys)
-        return xs, ys, xs[idx], ys[idx]
-
-    xs, ys, out_xsub, out_ysub = jax.jit(jax.vmap(data))(keys)
+    xs, ys, out_xsub, out_ysub, _ = jax.jit(jax.vmap(lambda k: train_lib.fit_data(prog, k, cfg)))(keys)
     out = {"seeds": args.seeds, "pairs": int(xs.shape[1]), "subset": int(out_xsub.shape[1]),
            "tolerance_nats_per_pair": TOLERANCE, "fits": {}}
     for name, kw, n in (("lbfgs", dict(optimizer="lbfgs", num_steps=15), None),

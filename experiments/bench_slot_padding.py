@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpguided_jax import bench, distributed, kernels, reproduce, sparse_gp
+from gpguided_jax import bench, distributed, reproduce, sparse_gp
 from gpguided_jax import config as config_lib
 from gpguided_jax import train as train_lib
 from gpguided_jax.cli import available_cores, single_threaded_lapack
@@ -38,17 +38,19 @@ from gpguided_jax.cli import available_cores, single_threaded_lapack
 VARIANTS = {"unpadded": 1, "padded": 8}
 
 
-def _compiled_variants(build) -> dict:
-    """{variant: build()} with `sparse_gp.SLOT_MULTIPLE` set while each is traced and compiled."""
+def _compiled_variants(build) -> tuple[dict, dict]:
+    """({variant: build()}, {variant: slots the update works on for M = 100}), with
+    `sparse_gp.SLOT_MULTIPLE` set while each is traced and compiled."""
     original = sparse_gp.SLOT_MULTIPLE
-    out = {}
+    out, slots = {}, {}
     try:
         for name, multiple in VARIANTS.items():
             sparse_gp.SLOT_MULTIPLE = multiple
             out[name] = build()
+            slots[name] = sparse_gp.padded_slots(101)
     finally:
         sparse_gp.SLOT_MULTIPLE = original
-    return out
+    return out, slots
 
 
 def _ratio_report(times: dict) -> dict:
@@ -59,22 +61,10 @@ def _ratio_report(times: dict) -> dict:
 
 
 def bench_gp_update(mesh, dtype, repeats: int, seeds: int = 10, n: int = 3000) -> dict:
-    s = bench.GP_SETTINGS
-    hyper = kernels.make_kernel_params(s["lengthscales"], s["signal_variance"], s["noise_variance"],
-                                       dtype=dtype)
-    kw = dict(novelty_tol=s["novelty_tol"], age_penalty=s["age_penalty"], age_scale=s["age_scale"])
-    streams = [bench._pendulum_stream(n, i) for i in range(seeds)]
-    xs = jnp.asarray(np.stack([a for a, _ in streams]), dtype)
-    ys = jnp.asarray(np.stack([b for _, b in streams]), dtype)
-    ts = jnp.arange(n) // 150
+    xs, ys, _ = bench.gp_streams(seeds, n, dtype)
     xs, ys = distributed.shard((xs, ys), mesh)
-
-    def build():
-        run = reproduce.per_seed_program(lambda x, y: sparse_gp.update_batch(
-            sparse_gp.init(100, 4, dtype), x, y, hyper, ts, **kw), mesh)
-        return run.lower(xs, ys).compile()
-
-    progs = _compiled_variants(build)
+    progs, slots = _compiled_variants(
+        lambda: bench.gp_stream_program(mesh, n, 100, dtype).lower(xs, ys).compile())
     outs = {k: p(xs, ys) for k, p in progs.items()}
     times = bench.timed_in_turn(progs, {k: (xs, ys) for k in progs}, repeats)
     report = _ratio_report(times)
@@ -82,8 +72,7 @@ def bench_gp_update(mesh, dtype, repeats: int, seeds: int = 10, n: int = 3000) -
                                       for k, v in report["run_s"].items()}
     report["same_basis_vectors"] = bool(np.array_equal(np.asarray(outs["padded"].basis_vectors),
                                                        np.asarray(outs["unpadded"].basis_vectors)))
-    report["slots"] = {k: int(sparse_gp.padded_slots(101)) if m > 1 else 101
-                       for k, m in VARIANTS.items()}
+    report["slots"] = slots
     return report
 
 
@@ -101,7 +90,7 @@ def bench_train(mesh, keys, dtype: str, methods, repeats: int, preset: str = "pa
             run = reproduce.per_seed_program(lambda s: train.run_chunk(s, c, c.num_updates), mesh)
             return run.lower(state).compile()
 
-        progs = _compiled_variants(build)
+        progs, _ = _compiled_variants(build)
         outs = {k: p(state) for k, p in progs.items()}
         times = bench.timed_in_turn(progs, {k: (state,) for k in progs}, repeats)
         report = _ratio_report(times)

@@ -18,7 +18,6 @@ import json
 import sys
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 import gpguided_jax
@@ -41,12 +40,7 @@ def main(argv=None) -> int:
     prog = train_lib.make_program(cfg)
     keys = reproduce.seed_keys(range(100, 100 + args.seeds))  # tuning seeds: not a result
 
-    def data(key):  # training's fitting subset; targets centred on the mean of all pairs
-        xs, ys, idx = train_lib.fit_subset(prog, key, cfg)
-        ys = ys - jnp.mean(ys)
-        return xs, ys, xs[idx], ys[idx]
-
-    all_x, all_y, xs, ys = jax.jit(jax.vmap(data))(keys)
+    all_x, all_y, xs, ys, _ = jax.jit(jax.vmap(lambda k: train_lib.fit_data(prog, k, cfg)))(keys)
     per_pair = jax.jit(jax.vmap(
         lambda p, x, y: hyperfit.negative_log_marginal_likelihood(p, x, y) / x.shape[0]))
 

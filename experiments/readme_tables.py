@@ -291,7 +291,7 @@ def slot_padding_table() -> str:
     runs = {len(g["run_s"]["padded"]["runs"]) for g in r["gp_update"].values()}
     runs_train = {len(g["run_s"]["padded"]["runs"]) for d in r["train"].values() for g in d.values()}
     lines.append("")
-    lines.append(f"Medians of {min(runs)} (GP update) and {min(runs_train) if runs_train else 0} "
+    lines.append(f"Medians of {min(runs)} (GP update) and {min(runs_train)} "
                  f"(training) runs in turn, {r['devices']} devices, {r['date']}. "
                  + _source("slot_padding.json"))
     return "\n".join(lines)

@@ -116,21 +116,40 @@ GP_SETTINGS = dict(lengthscales=[0.3, 0.3, 1.0, 3.0], signal_variance=30.0, nois
                    novelty_tol=1e-4, age_penalty=100.0, age_scale=1.0)
 
 
+PAIRS_PER_STAMP = 150  # the streams' timestamps advance every 150 pairs, as an update's episodes
+
+
+def gp_streams(seeds: int, n: int, dtype=None):
+    """`seeds` pendulum-like streams of n (x, y) pairs: xs (seeds, n, 4) and ys (seeds, n) as
+    arrays, and the list of NumPy (x, y) streams they were made from."""
+    streams = [_pendulum_stream(n, i) for i in range(seeds)]
+    xs = jnp.asarray(np.stack([a for a, _ in streams]), dtype)
+    ys = jnp.asarray(np.stack([b for _, b in streams]), dtype)
+    return xs, ys, streams
+
+
+def gp_stream_program(mesh, n: int, capacity: int, dtype=None):
+    """The per-seed program (over `mesh`, `reproduce.per_seed_program`) that takes one stream of n
+    pairs into an empty GP of `capacity` with `GP_SETTINGS`: `gpguided bench`'s sparse-GP figure."""
+    s = GP_SETTINGS
+    hyper = kernels.make_kernel_params(s["lengthscales"], s["signal_variance"], s["noise_variance"],
+                                       dtype=dtype)
+    kw = dict(novelty_tol=s["novelty_tol"], age_penalty=s["age_penalty"], age_scale=s["age_scale"])
+    ts = jnp.arange(n) // PAIRS_PER_STAMP
+    return reproduce.per_seed_program(lambda x, y: sparse_gp.update_batch(
+        sparse_gp.init(capacity, 4, dtype), x, y, hyper, ts, **kw), mesh)
+
+
 def bench_gp(repeats: int, seeds: int = 10, n: int = 3000, capacity: int = 100,
              numpy_points: int = 1500) -> dict:
     s = GP_SETTINGS
-    hyper = kernels.make_kernel_params(s["lengthscales"], s["signal_variance"], s["noise_variance"])
     kw = dict(novelty_tol=s["novelty_tol"], age_penalty=s["age_penalty"], age_scale=s["age_scale"])
-    streams = [_pendulum_stream(n, i) for i in range(seeds)]
-    xs = jnp.asarray(np.stack([a for a, _ in streams]))
-    ys = jnp.asarray(np.stack([b for _, b in streams]))
-    ts = jnp.arange(n) // 150
+    xs, ys, streams = gp_streams(seeds, n)
     mesh = reproduce.make_mesh(None, seeds)  # as training runs it: seeds over devices, per device
     if seeds % mesh.devices.size:            # one after another on a CPU (`per_seed_program`)
         mesh = reproduce.make_mesh(1)
     xs, ys = distributed.shard((xs, ys), mesh)
-    run = reproduce.per_seed_program(lambda x, y: sparse_gp.update_batch(
-        sparse_gp.init(capacity, 4), x, y, hyper, ts, **kw), mesh)
+    run = gp_stream_program(mesh, n, capacity)
     t0 = time.perf_counter()
     jax.block_until_ready(run(xs, ys))
     compile_s = time.perf_counter() - t0
@@ -142,7 +161,7 @@ def bench_gp(repeats: int, seeds: int = 10, n: int = 3000, capacity: int = 100,
                                     s["noise_variance"], **kw)
         t0 = time.perf_counter()
         for i in range(numpy_points):
-            ref.update(x0[i], y0[i], int(ts[i]))
+            ref.update(x0[i], y0[i], i // PAIRS_PER_STAMP)
         np_times.append(time.perf_counter() - t0)
     np_t = _stats(np_times)
     jax_rate = seeds * n / jax_t["median"]

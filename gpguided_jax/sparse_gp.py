@@ -86,7 +86,8 @@ docs/results/slot_padding.json; in a scratch run 112 slots were not faster than 
 presumably rows whose length is a multiple of the vector width keep XLA:CPU's loops out of their
 remainder code). The extra zeros change only the rounding of some sums, so `update_batch` equals
 `update_with_info` applied pair by pair (which does not pad) in its decisions and to rounding in
-its numbers, and its two loops equal each other bit for bit.
+its numbers. Its two loops equal each other bit for bit on a stream taken in alone; inside a larger
+program XLA may compile their padded surroundings differently, and they then agree to rounding.
 """
 
 import functools
@@ -741,7 +742,8 @@ def update_batch(
     same decisions; the numbers to rounding, since the loops work on buffers padded to a multiple
     of 8 slots, module notes).
 
-    Two loops compute it, with the same arithmetic and so the same result bit for bit:
+    Two loops compute it, with the same arithmetic and so the same result bit for bit (called on
+    their own; inside a larger program, to rounding: module notes):
 
     * one GP (not under `jax.vmap`): `lax.while_loop`s in segments. An inner loop gives the
       projected update (steps 1 and 3) to consecutive pairs for as long as none is a candidate for
@@ -798,7 +800,6 @@ _TRACEABLE_DEFAULTS = dict(novelty_tol=0.0, noise_novelty=0.01, collapse_fractio
 
 def _scanned_points(state, xs, ys, hyper, timestamps, valid, params, age_fn, unroll):
     """`update_with_info` under `lax.scan` (the loop for a batch of GPs)."""
-
     slots = state.alpha.shape[-1]
 
     def body(carry, inputs):

@@ -394,16 +394,40 @@ def fit_subset(prog: Program, key, cfg: TrainConfig):
     return xs, ys, jax.random.choice(key_subset, xs.shape[0], (n,), replace=False)
 
 
+class FitData(NamedTuple):
+    """The hyperparameter fit's data as `fit_prior` uses it (N collected pairs, n in the subset).
+
+    Attributes:
+      xs: (N, D) every collected input.
+      ys: (N,) their returns-to-go, centred on `mean`.
+      fit_xs: (n, D) the subset the likelihood is taken on.
+      fit_ys: (n,) its centred returns.
+      mean: () the mean return of all N pairs, the prior mean of Q_GP.
+    """
+
+    xs: jax.Array
+    ys: jax.Array
+    fit_xs: jax.Array
+    fit_ys: jax.Array
+    mean: jax.Array
+
+
+def fit_data(prog: Program, key, cfg: TrainConfig) -> FitData:
+    """`fit_subset`'s pairs with the returns centred on their mean (the kernel is fitted to centred
+    returns), and the subset taken."""
+    xs, ys, idx = fit_subset(prog, key, cfg)
+    mean = jnp.mean(ys)
+    fit_xs, fit_ys = (xs, ys) if idx is None else (xs[idx], ys[idx])
+    return FitData(xs, ys - mean, fit_xs, fit_ys - mean, mean)
+
+
 def fit_prior(prog: Program, key, cfg: TrainConfig) -> GPPrior:
     """The GP's kernel (exact marginal likelihood on a random subset, paper §VI) and prior mean."""
     static = prog.config
-    xs, ys, idx = fit_subset(prog, key, cfg)
-    mean = jnp.mean(ys)  # the prior mean of Q_GP; the kernel is fitted to centred returns
-    if idx is not None:
-        xs, ys = xs[idx], ys[idx]
-    kernel = hyperfit.fit(xs, ys - mean, num_steps=static.hyperfit_steps,
+    data = fit_data(prog, key, cfg)
+    kernel = hyperfit.fit(data.fit_xs, data.fit_ys, num_steps=static.hyperfit_steps,
                           optimizer=static.hyperfit_optimizer).params
-    return GPPrior(kernel, mean)
+    return GPPrior(kernel, data.mean)
 
 
 def initial_state(prog: Program, key, cfg: TrainConfig, prior: GPPrior | None = None) -> TrainState:

@@ -439,12 +439,17 @@ def test_shorter_adam_fit_prose_quotes_its_files():
     assert sentence in text, sentence
 
 
+def _results_json(name: str) -> dict:
+    """A JSON file under docs/results/."""
+    with open(os.path.join(ROOT, "docs", "results", name)) as f:
+        return json.load(f)
+
+
 def test_slot_padding_prose_quotes_its_file():
     """The sparse-GP section's figures for the padded buffers are those of slot_padding.json, and
     the module's notes quote the same rounded ratios."""
     text = " ".join(_readme().split())
-    with open(os.path.join(ROOT, "docs", "results", "slot_padding.json")) as f:
-        pad = json.load(f)
+    pad = _results_json("slot_padding.json")
     f64 = pad["gp_update"]["float64"]["padded_over_unpadded"]
     f32 = pad["gp_update"]["float32"]["padded_over_unpadded"]
     gp_pg = pad["train"]["float64"]["gp_pg"]["padded_over_unpadded"]
@@ -464,13 +469,9 @@ def test_third_machine_prose_quotes_its_files():
     bench_2026-12-02_third_machine.json and bench.json, and the estimate without the padding is
     the quotient it claims (slot_padding.json)."""
     text = " ".join(_readme().split())
-    res = os.path.join(ROOT, "docs", "results")
-    with open(os.path.join(res, "bench_2026-12-02_third_machine.json")) as f:
-        third = json.load(f)
-    with open(os.path.join(res, "bench.json")) as f:
-        first = json.load(f)
-    with open(os.path.join(res, "slot_padding.json")) as f:
-        pad = json.load(f)
+    third = _results_json("bench_2026-12-02_third_machine.json")
+    first = _results_json("bench.json")
+    pad = _results_json("slot_padding.json")
     t = third["train"]
     ratio = t["numpy_gp_pg"]["ratio_jax_over_numpy"]
     run = t["methods"]["gp_pg"]["run_s"]["median"]
@@ -500,10 +501,8 @@ def test_third_machine_prose_quotes_its_files():
 
 def test_status_quotes_the_third_machine():
     text = " ".join(_readme().split())
-    with open(os.path.join(ROOT, "docs", "results", "bench_2026-12-02_third_machine.json")) as f:
-        b = json.load(f)
-    with open(os.path.join(ROOT, "docs", "results", "slot_padding.json")) as f:
-        pad = json.load(f)
+    b = _results_json("bench_2026-12-02_third_machine.json")
+    pad = _results_json("slot_padding.json")
     speedup = 1 / pad["train"]["float64"]["gp_pg"]["padded_over_unpadded"]
     n = b["train"]["numpy_gp_pg"]
     fastest = (n["seconds_per_update"]["min"] * n["extrapolated_run_s"] / n["seconds_per_update"]["median"]
