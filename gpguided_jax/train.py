@@ -295,46 +295,109 @@ def optimiser_step(state: TrainState, grad, cfg: TrainConfig):
     return theta._replace(log_std=log_std), opt_state, grad_norm, finite, at_bound
 
 
-def one_update(prog: Program, cfg: TrainConfig, state: TrainState):
-    """key -> roll-outs and GP updates (steps 1-2) -> gradient (3) -> optimiser (4) -> record."""
+def _take_in(prog: Program, cfg: TrainConfig, state: TrainState, gp, ep: Episode, returns):
+    """Step 2 for one episode of this update (a no-op without a GP): (gp, fired, error_ratio)."""
     static = prog.config
-    key, key_eps = jax.random.split(state.key)
-    key_eval = jax.random.fold_in(key_eps, 1)  # a side stream: the episodes' keys stay as they were
-    t = state.update_index
+    fired, error_ratio = jnp.zeros((), jnp.int32), jnp.zeros((), prog.dtype)
+    if static.uses_gp:
+        k = static.gp_stride  # every k-th step of the episode joins the GP (1: all)
+        gp, fired, health = take_in_episode(
+            gp, state.kernel, _features(ep.states, ep.actions)[::k], returns[::k],
+            state.update_index, cfg)
+        error_ratio = health.mean_error_ratio
+    return gp, fired, error_ratio
 
-    def take_in(gp, ep, returns):
-        fired, error_ratio = jnp.zeros((), jnp.int32), jnp.zeros((), prog.dtype)
-        if static.uses_gp:
-            k = static.gp_stride  # every k-th step of the episode joins the GP (1: all)
-            gp, fired, health = take_in_episode(
-                gp, state.kernel, _features(ep.states, ep.actions)[::k], returns[::k], t, cfg)
-            error_ratio = health.mean_error_ratio
-        return gp, fired, error_ratio
 
-    keys = jax.random.split(key_eps, static.episodes_per_update)
+def _side_by_side(prog: Program, cfg: TrainConfig, state: TrainState, keys):
+    """The update's episodes of a policy that does not read the GP, rolled out as one batch (the
+    same draws as one after another), and their returns-to-go."""
+    ctx = policy_context(cfg, state.gp, state.kernel)
+    eps = jax.vmap(lambda k: rollout(prog, k, state.theta, ctx, prog.policy, cfg))(keys)
+    returns = jax.vmap(estimators.discounted_returns, in_axes=(0, None))(eps.rewards, cfg.discount)
+    return eps, returns
+
+
+def roll_out_and_take_in(prog: Program, cfg: TrainConfig, state: TrainState, keys):
+    """Steps 1-2 of one update: its episodes and the GP that has taken them in.
+
+    Returns:
+      (gp, eps, returns, fired, error_ratio), the last four with a leading (episodes,) axis.
+    """
     if prog.policy.reads_gp:
         # Each episode acts with the GP that has taken in the episodes before it.
         def episode(gp, key_e):
             ctx = policy_context(cfg, gp, state.kernel)
             ep = rollout(prog, key_e, state.theta, ctx, prog.policy, cfg)
             returns = estimators.discounted_returns(ep.rewards, cfg.discount)
-            gp, fired, error_ratio = take_in(gp, ep, returns)
+            gp, fired, error_ratio = _take_in(prog, cfg, state, gp, ep, returns)
             return gp, (ep, returns, fired, error_ratio)
 
         gp, (eps, returns, fired, error_ratio) = jax.lax.scan(episode, state.gp, keys)
+        return gp, eps, returns, fired, error_ratio
+    # The policy does not read the GP: the episodes are rolled out side by side, then the GP
+    # takes them in in order.
+    eps, returns = _side_by_side(prog, cfg, state, keys)
+
+    def take_in_one(gp, ep_and_returns):
+        gp, fired, error_ratio = _take_in(prog, cfg, state, gp, *ep_and_returns)
+        return gp, (fired, error_ratio)
+
+    gp, (fired, error_ratio) = jax.lax.scan(take_in_one, state.gp, (eps, returns))
+    return gp, eps, returns, fired, error_ratio
+
+
+def roll_out_and_take_in_switched(progs, method_index, cfg: TrainConfig, state: TrainState, keys):
+    """`roll_out_and_take_in` with the policy of `progs[method_index]` (a traced index), so that
+    one program serves every method of `progs`: the GP update, the gradient and the optimiser
+    step are traced once, and only the roll-outs are branches of a `lax.switch`.
+
+    A policy that does not read the GP rolls the update's episodes out side by side before the
+    GP takes any of them in, as in `roll_out_and_take_in` (a `lax.switch` whose other branches
+    return zeros); then every method's episodes go through one scan, in which an episode is
+    either rolled out with the GP taken in so far or read from the side-by-side batch.
+    """
+    side = [not p.policy.reads_gp for p in progs]
+    template = jax.eval_shape(lambda: _side_by_side(progs[0], cfg, state, keys))
+    zeros = lambda: jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), template)  # noqa: E731
+    if any(side):
+        batch = jax.lax.switch(method_index, [
+            (lambda p=p: _side_by_side(p, cfg, state, keys)) if s else zeros
+            for p, s in zip(progs, side)])
     else:
-        # The policy does not read the GP: the episodes are rolled out side by side (one batch,
-        # the same draws as one after another), then the GP takes them in in order.
-        ctx = policy_context(cfg, state.gp, state.kernel)
-        eps = jax.vmap(lambda k: rollout(prog, k, state.theta, ctx, prog.policy, cfg))(keys)
-        returns = jax.vmap(estimators.discounted_returns, in_axes=(0, None))(eps.rewards,
-                                                                             cfg.discount)
+        batch = zeros()
 
-        def take_in_one(gp, ep_and_returns):
-            gp, fired, error_ratio = take_in(gp, *ep_and_returns)
-            return gp, (fired, error_ratio)
+    def episode(gp, xs):
+        key_e, pre = xs
+        ctx = policy_context(cfg, gp, state.kernel)
 
-        gp, (fired, error_ratio) = jax.lax.scan(take_in_one, state.gp, (eps, returns))
+        def own(p):
+            ep = rollout(p, key_e, state.theta, ctx, p.policy, cfg)
+            return ep, estimators.discounted_returns(ep.rewards, cfg.discount)
+
+        ep, returns = jax.lax.switch(method_index, [
+            (lambda: pre) if s else (lambda p=p: own(p)) for p, s in zip(progs, side)])
+        gp, fired, error_ratio = _take_in(progs[0], cfg, state, gp, ep, returns)
+        return gp, (ep, returns, fired, error_ratio)
+
+    gp, (eps, returns, fired, error_ratio) = jax.lax.scan(episode, state.gp, (keys, batch))
+    return gp, eps, returns, fired, error_ratio
+
+
+def one_update(prog: Program, cfg: TrainConfig, state: TrainState, roll_out=None):
+    """key -> roll-outs and GP updates (steps 1-2) -> gradient (3) -> optimiser (4) -> record.
+
+    `roll_out(cfg, state, keys)` replaces steps 1-2 (default: `roll_out_and_take_in` with
+    `prog`'s policy; `make_gp_methods_train` passes the switched one).
+    """
+    static = prog.config
+    key, key_eps = jax.random.split(state.key)
+    key_eval = jax.random.fold_in(key_eps, 1)  # a side stream: the episodes' keys stay as they were
+    t = state.update_index
+    keys = jax.random.split(key_eps, static.episodes_per_update)
+    if roll_out is None:
+        gp, eps, returns, fired, error_ratio = roll_out_and_take_in(prog, cfg, state, keys)
+    else:
+        gp, eps, returns, fired, error_ratio = roll_out(cfg, state, keys)
     grad = gradient_estimate(prog, state, eps, returns, gp)
     theta, opt_state, grad_norm, finite, at_bound = optimiser_step(state, grad, cfg)
 
@@ -511,3 +574,49 @@ def make_train(config: TrainConfig):
     train.policy = prog.policy
     train.config = config
     return train
+
+
+# ------------------------------------------------------------------------------------------------
+# Every GP method of a configuration as one program.
+# ------------------------------------------------------------------------------------------------
+
+GP_METHODS = ("gp_pg", "guided_variance", "guided_direction")
+
+
+def gp_methods_key(cfg: TrainConfig) -> TrainConfig:
+    """`cfg` with its method set to the first GP method: the configs of the GP methods of one
+    static configuration then share a pytree structure, and so one `make_gp_methods_train`
+    program (the method is its `method_index` argument)."""
+    if not cfg.uses_gp:
+        raise ValueError(f"make_gp_methods_train runs the GP methods {GP_METHODS}, not {cfg.method!r}")
+    return cfg.replace(method=GP_METHODS[0])
+
+
+def make_gp_methods_train(config: TrainConfig):
+    """One program for every GP method (`GP_METHODS`) of `config`'s static fields.
+
+    Returns `run_chunk(state, method_index, cfg, num_updates=config.num_updates) -> (TrainState,
+    UpdateRecord)`: the updates of `make_train(cfg).run_chunk` for the method
+    `GP_METHODS[method_index]`, where `method_index` is a traced () int32 and `cfg` a traced
+    argument (pass `gp_methods_key(method_cfg)`: any GP method's config with these static fields).
+    The GP update, the gradient, the optimiser step and the records are traced once for all
+    methods; each method's roll-outs are a branch of a `lax.switch`
+    (`roll_out_and_take_in_switched`). `gpguided reproduce` runs its GP methods this way, which
+    compiles one program instead of three. The records are those of `make_train(cfg).run_chunk`
+    to rounding (XLA compiles the two programs differently), with the same draws.
+    """
+    key = gp_methods_key(config)
+    progs = tuple(make_program(key.replace(method=m)) for m in GP_METHODS)
+
+    def run_chunk(state, method_index, cfg=key, num_updates=config.num_updates):
+        if cfg.static_dict() != key.static_dict():
+            raise ValueError(
+                "the config passed to make_gp_methods_train's run_chunk must be gp_methods_key of a "
+                f"config with its static fields: {cfg.static_dict()} != {key.static_dict()}")
+        roll_out = lambda c, s, keys: roll_out_and_take_in_switched(progs, method_index, c, s, keys)  # noqa: E731
+        return jax.lax.scan(lambda s, _: one_update(progs[0], cfg, s, roll_out), state, None,
+                            length=num_updates)
+
+    run_chunk.config = key
+    run_chunk.methods = GP_METHODS
+    return run_chunk
