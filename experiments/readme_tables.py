@@ -130,6 +130,12 @@ def bench_table() -> str:
     for m, r in t["methods"].items():
         lines.append(f"| {m}: {t['seeds']} seeds x all updates (run; compile {r['compile_s']:.1f} s) "
                      f"| {cell(r['run_s'], digits=2)} | |")
+    if "gp_methods_program" in t:
+        g = t["gp_methods_program"]
+        lines.append(f"| the three GP methods as one program, as `gpguided reproduce` runs them "
+                     f"(run; compile {g['compile_s']:.1f} s once for all three) | "
+                     + " / ".join(cell(r["run_s"], digits=2) for r in g["methods"].values())
+                     + " (" + " / ".join(g["methods"]) + ") | |")
     n = t["numpy_gp_pg"]
     runs = n["seconds_per_update"]["runs"] if "seconds_per_update" in n else 1
     of_runs = f"the median of {runs} runs of" if runs > 1 else "one run of"
@@ -156,6 +162,14 @@ THIRD_MACHINE = "bench_2026-12-02_third_machine.json"
 MACHINE_LABELS = ("the table above", "the second machine", "a third machine, padded GP buffers")
 
 
+def _figure(get, report, digits):
+    """`get(report)` formatted, or a dash for a report written before that figure was measured."""
+    try:
+        return f"{get(report):.{digits}f}"
+    except KeyError:
+        return "—"
+
+
 def bench_machines_table() -> str:
     """The headline figures of `bench.json` beside the same command's reports on the machines that
     replaced this project's machine on 2026-12-02 (same kind: 2 cores; other CPUs). The third ran
@@ -174,8 +188,11 @@ def bench_machines_table() -> str:
          lambda b: b["train"]["hyperfit_alternative"]["run_s"]["median"], 2, ""),
         ("all four methods' runs [s]", lambda b: sum(
             m["run_s"]["median"] for m in b["train"]["methods"].values()), 1, ""),
-        ("all four methods' compilation [s]", lambda b: sum(
+        ("all four methods' compilation, one program each [s]", lambda b: sum(
             m["compile_s"] for m in b["train"]["methods"].values()), 1, ""),
+        ("the same, the GP methods as one program [s]", lambda b: (
+            b["train"]["methods"]["reinforce"]["compile_s"]
+            + b["train"]["gp_methods_program"]["compile_s"]), 1, ""),
         ("gp_pg run [s]", lambda b: b["train"]["methods"]["gp_pg"]["run_s"]["median"], 2, ""),
         ("NumPy loop, ms per update", lambda b: 1e3 * b["train"]["numpy_gp_pg"][
             "seconds_per_update_one_seed"], 1, ""),
@@ -187,7 +204,7 @@ def bench_machines_table() -> str:
         f"{label}, {b['date']}" for label, b in zip(MACHINE_LABELS, reports)) + " | target |"
     lines = [head, "|---" * (len(reports) + 2) + "|"]
     for label, get, digits, target in rows:
-        lines.append(f"| {label} | " + " | ".join(f"{get(b):.{digits}f}" for b in reports)
+        lines.append(f"| {label} | " + " | ".join(_figure(get, b, digits) for b in reports)
                      + f" | {target} |")
     lines.append("")
     lines.append(_source(*names))

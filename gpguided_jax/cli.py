@@ -258,6 +258,7 @@ def _cmd_reproduce(args) -> int:
         num_devices=args.devices,
         max_chunks=args.max_chunks,
         seed_loop=args.seed_loop,
+        gp_program=args.gp_program.replace("-", "_"),
     )
     _report_compile_cache()
     if not out["complete"]:
@@ -385,6 +386,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="several processes: how many in all")
     rep.add_argument("--process-id", type=non_negative_int, default=None,
                      help="several processes: this one's index, 0 .. N-1 (0 writes the results)")
+    rep.add_argument("--gp-program", default="shared", choices=["shared", "per-method"],
+                     help="shared (default): the three GP methods run one compiled program, the "
+                     "method an argument (compiled once); per-method: one program each (the "
+                     "records agree to rounding)")
     rep.add_argument("--max-chunks", type=int, default=None, help=argparse.SUPPRESS)
     rep.set_defaults(func=_cmd_reproduce)
 

@@ -44,7 +44,8 @@ from gpguided_jax import stats as stats_lib
 from gpguided_jax import train as train_lib
 
 RECORD_FIELDS = train_lib.UpdateRecord._fields
-CHECKPOINT_VERSION = 3  # bump when the state's pytree changes; older checkpoints are ignored
+CHECKPOINT_VERSION = 4  # bump when the state's pytree or the programs change; older ones are ignored
+GP_PROGRAMS = ("shared", "per_method")
 # Pairs (x, y) for which the probability that x beats y is reported (rliable).
 COMPARISONS = (
     ("gp_pg", "reinforce"),
@@ -314,6 +315,72 @@ def _load_checkpoint(path, template, digest, mesh, progress):
     return state, records, done
 
 
+_SHARED_PROGRAMS: dict = {}  # (static config, mesh, loop, updates, donate) -> jitted chunk program
+_SHARED_PROGRAMS_KEPT = 8
+
+
+def chunk_program(cfg: config_lib.TrainConfig, mesh: Mesh, seed_loop: str, num_updates: int,
+                  gp_program: str = "shared"):
+    """The compiled chunk of `num_updates` updates that `run_method` runs for `cfg`, as
+    `step(state) -> (state, records)` over the sharded seed axis (the state's buffers donated).
+
+    With `gp_program='shared'` (the default) every GP method of one static configuration runs the
+    same program (`train.make_gp_methods_train`, the method and the traced config its
+    arguments): it is traced and compiled once per process for the three methods, and is the
+    same program whichever of them a run asks for, so a method's records do not depend on the
+    others. 'per_method' compiles `train.make_train(cfg).run_chunk` for each method (the records
+    agree with the shared program's to rounding). REINFORCE always has its own program.
+    """
+    if gp_program not in GP_PROGRAMS:
+        raise ValueError(f"gp_program must be one of {GP_PROGRAMS}, got {gp_program!r}")
+    loop = resolve_seed_loop(seed_loop, mesh)
+    if not cfg.uses_gp or gp_program == "per_method":
+        train = train_lib.make_train(cfg)
+        return per_seed_program(lambda s: train.run_chunk(s, cfg, num_updates), mesh, loop,
+                                donate=True)
+    program = gp_methods_program(cfg, mesh, loop, num_updates)
+    args = {}  # the method index and the config, one row per seed, placed once
+
+    def step(state):
+        seeds = jax.tree_util.tree_leaves(state)[0].shape[0]
+        if seeds not in args:
+            args[seeds] = gp_method_args(cfg, seeds, mesh)
+        return program(state, *args[seeds])
+
+    return step
+
+
+def gp_methods_program(cfg: config_lib.TrainConfig, mesh: Mesh, seed_loop: str, num_updates: int,
+                       donate: bool = True):
+    """The jitted `program(state, method_index, cfg) -> (state, records)` of
+    `train.make_gp_methods_train` for `cfg`'s static fields, over the sharded seed axis (the
+    state's buffers donated unless `donate=False`; `gp_method_args` gives the other two
+    arguments). One per static config, mesh, seed loop, chunk length and donation, kept for the
+    process (the last few), so every GP method that asks for it gets the same compiled program."""
+    loop = resolve_seed_loop(seed_loop, mesh)
+    key_cfg = train_lib.gp_methods_key(cfg)
+    cache_key = (tuple(sorted(key_cfg.static_dict().items())), mesh, loop, num_updates, donate)
+    program = _SHARED_PROGRAMS.get(cache_key)
+    if program is None:
+        run_chunk = train_lib.make_gp_methods_train(key_cfg)
+        program = per_seed_program(lambda s, i, c: run_chunk(s, i, c, num_updates), mesh, loop,
+                                   donate=donate)
+        while len(_SHARED_PROGRAMS) >= _SHARED_PROGRAMS_KEPT:
+            _SHARED_PROGRAMS.pop(next(iter(_SHARED_PROGRAMS)))
+        _SHARED_PROGRAMS[cache_key] = program
+    return program
+
+
+def gp_method_args(cfg: config_lib.TrainConfig, seeds: int, mesh: Mesh):
+    """`gp_methods_program`'s method index and config for `cfg`'s method, one row per seed of a
+    batch of `seeds` (padded to the mesh), sharded over `mesh`."""
+    def per_seed(x):
+        return _shard(np.broadcast_to(np.asarray(x), (seeds,) + np.shape(x)), mesh)
+
+    return (per_seed(np.int32(train_lib.GP_METHODS.index(cfg.method))),
+            jax.tree_util.tree_map(per_seed, train_lib.gp_methods_key(cfg)))
+
+
 def run_method(
     cfg: config_lib.TrainConfig,
     seeds: Sequence[int],
@@ -325,6 +392,7 @@ def run_method(
     max_chunks: int | None = None,
     progress: Callable[[str], None] = _log,
     seed_loop: str = "auto",
+    gp_program: str = "shared",
 ):
     """Runs one method for all seeds, a compiled chunk of updates at a time, resuming from
     `out_dir/checkpoint_<method>.npz` when present.
@@ -338,10 +406,13 @@ def run_method(
       kernels: optional fitted `train.GPPrior` with a leading seed axis (skips the hyperfit).
       max_chunks: stop after this many chunks in this call (to test resumption); None: run to the end.
       seed_loop: how each device runs its seeds, 'auto', 'vmap' or 'map' (`per_seed_program`).
+      gp_program: 'shared' (one program for every GP method) or 'per_method' (`chunk_program`).
 
     Returns:
       (records, state): dict field -> (seeds, updates_done) records, and the final `TrainState`.
     """
+    if gp_program not in GP_PROGRAMS:
+        raise ValueError(f"gp_program must be one of {GP_PROGRAMS}, got {gp_program!r}")
     mesh = mesh or make_mesh()
     n_dev = mesh.devices.size
     seeds = list(map(int, seeds))
@@ -362,13 +433,13 @@ def run_method(
 
     def chunk_fn(n):
         if n not in compiled:
-            compiled[n] = per_seed_program(lambda s: train.run_chunk(s, cfg, n), mesh, loop,
-                                           donate=True)
+            compiled[n] = chunk_program(cfg, mesh, loop, n, gp_program)
         return compiled[n]
 
     ckpt = checkpoint_path(out_dir, cfg.method)
     digest = _digest(CHECKPOINT_VERSION, cfg.to_json_dict(), padded, chunk_size,
-                     [str(d) for d in mesh.devices.flat], loop)
+                     [str(d) for d in mesh.devices.flat], loop,
+                     gp_program if cfg.uses_gp else "per_method")
     args = (keys,) if kernels is None else (keys, _shard(kernels, mesh))
     template = jax.eval_shape(init, *args)
     loaded = _load_checkpoint(ckpt, template, digest, mesh, progress)
@@ -633,6 +704,7 @@ def reproduce(
     overrides: dict | None = None,
     progress: Callable[[str], None] = _log,
     seed_loop: str = "auto",
+    gp_program: str = "shared",
 ) -> dict:
     """Runs every method for every seed and writes results.npz, config.json, summary.csv,
     comparisons.csv and Fig. 5 to `out_dir`.
@@ -641,8 +713,12 @@ def reproduce(
     paths; `complete` is False when `max_chunks` stopped a method early (then nothing but
     checkpoints is written). With several processes (`distributed.initialize`) the seeds are
     sharded over the devices of all of them; each keeps its own checkpoint, and process 0 reports
-    progress and writes config.json, results.npz, the CSV files and the figures.
+    progress and writes config.json, results.npz, the CSV files and the figures. The GP methods
+    share one compiled program (`gp_program='shared'`; 'per_method' compiles one each, see
+    `chunk_program`).
     """
+    if gp_program not in GP_PROGRAMS:
+        raise ValueError(f"gp_program must be one of {GP_PROGRAMS}, got {gp_program!r}")
     seeds = list(map(int, seeds))
     main = distributed.is_main()
     if not main:  # one voice: process 0 reports progress and writes the results
@@ -656,7 +732,7 @@ def reproduce(
             {"preset": preset, "seeds": seeds, "chunk_size": chunk_size, "dtype": dtype,
              "processes": distributed.process_count(),
              "devices": [str(d) for d in mesh.devices.flat], "seed_loop": loop,
-             "methods": {m: c.to_json_dict() for m, c in cfgs.items()}}, indent=2))
+             "gp_program": gp_program, "methods": {m: c.to_json_dict() for m, c in cfgs.items()}}, indent=2))
 
     gp_methods = [m for m in methods if cfgs[m].uses_gp]
     priors = (fit_priors(cfgs[gp_methods[0]], seeds, out_dir, mesh, progress, loop)
@@ -666,7 +742,8 @@ def reproduce(
     for m in methods:
         rec, _ = run_method(cfgs[m], seeds, out_dir, chunk_size=chunk_size, mesh=mesh,
                             kernels=priors if cfgs[m].uses_gp else None,
-                            max_chunks=max_chunks, progress=progress, seed_loop=loop)
+                            max_chunks=max_chunks, progress=progress, seed_loop=loop,
+                            gp_program=gp_program)
         if rec["mean_reward"].shape[1] < cfgs[m].num_updates:
             return {"complete": False}
         records[m] = rec

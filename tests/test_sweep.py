@@ -134,7 +134,8 @@ def test_cli_sweep_help(capsys):
 def test_sweep_runs_equal_the_same_runs_alone(tmp_path):
     """On a CPU the sweep takes its runs one after another (`reproduce.per_seed_program`, map):
     a (value, seed) run's records are those of `reproduce.run_method` for that value's config and
-    the same fitted kernels, bit for bit."""
+    the same fitted kernels, bit for bit, with the method's own program (a sweep compiles one
+    method; `gp_program='per_method'`)."""
     import jax
 
     from gpguided_jax import config as C
@@ -150,6 +151,6 @@ def test_sweep_runs_equal_the_same_runs_alone(tmp_path):
     assert not np.array_equal(result.records["grad_norm"][0], result.records["grad_norm"][1])
     cfg = C.preset("tiny", method="gp_pg", num_updates=4, learning_rate=values[1])
     rec, _ = reproduce.run_method(cfg, seeds, str(tmp_path), chunk_size=2, mesh=mesh,
-                                  kernels=priors, progress=lambda m: None)
+                                  kernels=priors, progress=lambda m: None, gp_program="per_method")
     for k in ("mean_reward", "exploration_std", "grad_norm", "num_basis_vectors"):
         np.testing.assert_array_equal(result.records[k][1], rec[k])

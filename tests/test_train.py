@@ -355,3 +355,107 @@ def test_summary_success_columns():
     assert "final_success_rate" not in R.summarise({"m": recs})[0]
     md = R.summary_markdown([row])
     assert "success (c(s))" in md and "1/3" in md
+
+
+# ------------------------------------------------------------------------------------------------
+# The GP methods as one program (`train.make_gp_methods_train`, `reproduce.chunk_program`).
+# ------------------------------------------------------------------------------------------------
+
+
+def _assert_same_run_to_rounding(a, b, first_rtol=1e-11, rtol=1e-6):
+    """Two runs of the same draws compiled differently: the same integer records (GP decisions,
+    clipping, guard), the first update's floats equal to rounding (`first_rtol`), and the later
+    ones within `rtol`. Rounding differences grow through the closed loop (the GP's choices feed
+    the next roll-out): measured on the tiny preset, from ~1e-14 at the first update to ~1e-7 at
+    the eighth (guided_direction); a real difference (another learning rate or method) moves
+    them by more than 1e-3 (the negative checks below)."""
+    (sa, ra), (sb, rb) = a, b
+    for name, x in ra._asdict().items():
+        x, y = np.asarray(x), np.asarray(getattr(rb, name))
+        if np.issubdtype(x.dtype, np.integer):
+            np.testing.assert_array_equal(x, y, err_msg=name)
+        else:
+            np.testing.assert_allclose(x[:, 0], y[:, 0], rtol=first_rtol, atol=1e-13, err_msg=name)
+            np.testing.assert_allclose(x, y, rtol=rtol, atol=1e-12, err_msg=name)
+    for x, y in zip(jax.tree_util.tree_leaves(sa.theta), jax.tree_util.tree_leaves(sb.theta)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=rtol, atol=1e-12)
+
+
+def _max_rel_diff(a, b):
+    return max(float(np.max(np.abs(np.asarray(x) - np.asarray(y)) / (np.abs(np.asarray(y)) + 1e-12)))
+               for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)))
+
+
+def test_gp_methods_program_runs_each_method_as_its_own_program():
+    """One program for the three GP methods: with the method's index and config as arguments it
+    gives what that method's own program gives (to rounding: XLA compiles the two differently),
+    including a traced field that differs between the methods (each method a learning rate of
+    its own, as the swing-up preset tunes them), and it is traced once for all three."""
+    base = C.preset("tiny", method="gp_pg")
+    priors = jax.jit(jax.vmap(T.make_train(base).fit_kernel_for_seed))(KEYS)
+    traces = []
+    shared = T.make_gp_methods_train(base)
+
+    def counted(state, index, cfg):
+        traces.append(1)  # runs only while tracing
+        return shared(state, index, cfg, 4)
+
+    program = jax.jit(functools.partial(jax.lax.map, lambda a: counted(*a)))
+    per_seed = lambda x: np.broadcast_to(np.asarray(x), (2,) + np.shape(x))  # noqa: E731
+    rates = {"gp_pg": 0.02, "guided_variance": 0.01, "guided_direction": 0.005}
+    runs = {}
+    for i, method in enumerate(T.GP_METHODS):
+        cfg = C.preset("tiny", method=method, learning_rate=rates[method])
+        train = T.make_train(cfg)
+        state = jax.jit(jax.vmap(functools.partial(train.init, cfg=cfg)))(KEYS, prior=priors)
+        # the seeds one after another (lax.map), as the shared program runs them: faster to compile
+        own = jax.jit(functools.partial(jax.lax.map, functools.partial(
+            train.run_chunk, cfg=cfg, num_updates=4)))(state)
+        got = program((state, per_seed(np.int32(i)),
+                       jax.tree_util.tree_map(per_seed, T.gp_methods_key(cfg))))
+        _assert_same_run_to_rounding(got, own)
+        assert np.asarray(own[1].num_basis_vectors).max() > 0
+        runs[method] = cfg, state, own
+    assert len(traces) == 1
+    # the learning rate is read from the argument: another value gives another run
+    cfg, state, own = runs["guided_variance"]
+    other = program((state, per_seed(np.int32(1)),
+                     jax.tree_util.tree_map(per_seed, T.gp_methods_key(cfg.replace(learning_rate=0.5)))))
+    assert _max_rel_diff(other[0].theta, own[0].theta) > 1e-3
+    with pytest.raises(AssertionError):
+        _assert_same_run_to_rounding(other, own)
+    # and the method from the index: guided_variance's config with gp_pg's index is another run
+    gp_pg_like = program((state, per_seed(np.int32(0)),
+                          jax.tree_util.tree_map(per_seed, T.gp_methods_key(cfg))))
+    assert _max_rel_diff(gp_pg_like[0].theta, own[0].theta) > 1e-3
+
+
+def test_gp_methods_program_refuses_reinforce_and_other_static_fields():
+    with pytest.raises(ValueError, match="reinforce"):
+        T.make_gp_methods_train(C.preset("tiny", method="reinforce"))
+    shared = T.make_gp_methods_train(C.preset("tiny", method="gp_pg"))
+    cfg = C.preset("tiny", method="guided_direction", num_candidates=8)
+    with pytest.raises(ValueError, match="static fields"):  # before the state is looked at
+        shared(None, 2, T.gp_methods_key(cfg), 1)
+
+
+def test_a_method_alone_equals_it_among_the_others(tmp_path):
+    """`reproduce` runs its GP methods through one shared program, whichever of them it is asked
+    for, so a method's records are the same bit for bit alone and with the others, and compiled
+    once for all of them; `gp_program='per_method'` (one program each) agrees to rounding."""
+    kw = dict(preset="tiny", seeds=[0, 1], progress=lambda m: None)
+    R._SHARED_PROGRAMS.clear()
+    R.reproduce(out_dir=str(tmp_path / "all"), methods=list(T.GP_METHODS), **kw)
+    assert len(R._SHARED_PROGRAMS) == 1  # one program, one chunk length
+    (program,) = R._SHARED_PROGRAMS.values()
+    assert program._cache_size() == 1  # compiled once, for the three methods
+    R.reproduce(out_dir=str(tmp_path / "alone"), methods=["guided_variance"], **kw)
+    R.reproduce(out_dir=str(tmp_path / "own"), methods=["guided_variance"],
+                gp_program="per_method", **kw)
+    every, alone, own = (np.load(tmp_path / d / "results.npz") for d in ("all", "alone", "own"))
+    assert list(every["methods"]) == list(T.GP_METHODS)
+    for k in R.RECORD_FIELDS:
+        np.testing.assert_array_equal(alone[k][0], every[k][1], err_msg=k)
+        np.testing.assert_allclose(own[k][0], every[k][1], rtol=1e-9, atol=1e-12, err_msg=k)
+    with pytest.raises(ValueError, match="gp_program"):
+        R.reproduce(out_dir=str(tmp_path / "bad"), methods=["gp_pg"], gp_program="union", **kw)
