@@ -6,9 +6,11 @@ Protocol (the paper shows one run per panel and gives no details; these choices 
   trained with the chosen preset for the given seeds: all seeds of a method as one compiled,
   vmapped program (`train.run_chunk`), in `--checkpoints` equal chunks of updates. The GP
   hyperparameters are fitted once per seed and shared by the GP methods, with the same keys as
-  `gpguided reproduce` (seeds 0-4 of the paper preset reproduce that command's curves, bitwise
+  `gpguided reproduce` (seeds 0-4 of the paper preset reproduced that command's curves, bitwise
   for reinforce and guided_direction, up to floating-point divergence of the chaotic training for
-  the other two: differently compiled programs round differently).
+  the other two: differently compiled programs round differently; that was before `reproduce`
+  ran its GP methods as one program by default, which rounds differently again, so compare with
+  `gpguided reproduce --gp-program per-method`).
 * Visited states: after every chunk, `train.episodes` rolls out the method's own policy
   (controller, noise and GP as they are at that checkpoint, held fixed) for `--eval-episodes`
   episodes, with keys drawn apart from the training keys. The training episodes themselves are not

@@ -130,18 +130,31 @@ def test_cross_machine_figures_quote_their_files():
     assert m, "fourth-run sentence not found"
     assert float(m.group(1)) == round(float(fourth["guided_direction"]["final_iqm"]), 4)
     assert int(m.group(2)) == int(fourth["guided_direction"]["fail_below_zero_torque"])
-    # the current results: the padded GP buffers, against the fourth run
+    # the fifth run: the padded GP buffers, one program per method, against the fourth run
     now = {r["method"]: r for r in csv.DictReader(open(
-        os.path.join(ROOT, "docs", "results", "paper_float64", "summary.csv")))}
+        os.path.join(ROOT, "docs", "results", "per_method_2026-12-02", "paper_float64_summary.csv")))}
     m = re.search(rf"against the fourth, reinforce the same to the last digit, gp_pg and "
                   rf"guided_variance\s+within ([\d.e-]+), and guided_direction's final IQM is "
                   rf"{num} with (\d+) seeds below the zero-torque\s+policy", text)
-    assert m, "current-code sentence not found"
+    assert m, "fifth-run sentence not found"
     assert now["reinforce"]["final_mean"] == fourth["reinforce"]["final_mean"]
     for name in ("gp_pg", "guided_variance"):
         assert abs(float(now[name]["final_mean"]) - float(fourth[name]["final_mean"])) < float(m.group(1))
     assert float(m.group(2)) == round(float(now["guided_direction"]["final_iqm"]), 4)
     assert int(m.group(3)) == int(now["guided_direction"]["fail_below_zero_torque"])
+    # the current results (the GP methods as one program) against the fifth run
+    current = {r["method"]: r for r in csv.DictReader(open(
+        os.path.join(ROOT, "docs", "results", "paper_float64", "summary.csv")))}
+    m = re.search(rf"against the fifth, .*?reinforce and guided_variance\s+the same to the last "
+                  rf"digit, gp_pg within ([\d.e-]+), and guided_direction's final IQM\s+is {num} "
+                  rf"with (\d+) seeds below the zero-torque policy", text, re.S)
+    assert m, "current-code sentence not found"
+    for name in ("reinforce", "guided_variance"):
+        assert current[name]["final_mean"] == now[name]["final_mean"], name
+    gap = abs(float(current["gp_pg"]["final_mean"]) - float(now["gp_pg"]["final_mean"]))
+    assert 0 < gap < float(m.group(1))
+    assert float(m.group(2)) == round(float(current["guided_direction"]["final_iqm"]), 4)
+    assert int(m.group(3)) == int(current["guided_direction"]["fail_below_zero_torque"])
     now = fourth  # the second machine ran the fourth run's code
     # the same code on the machine that replaced this one (make results, both dtypes)
     second = os.path.join(ROOT, "docs", "results", "second_machine_2026-12-02")
