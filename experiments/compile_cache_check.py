@@ -8,8 +8,9 @@ elsewhere rejects the load and compiles again: `loads` needs the count, not only
 Two kinds of program:
 
 * the chunk program of every preset and method, for one seed (`train.make_train(cfg).run_chunk`
-  over 50 updates, the chunk `gpguided reproduce` compiles, without its split over devices), with
-  its number of XLA kernels (fusions, dots, custom calls; copies not counted);
+  over 50 updates, without the split over devices), and the three GP methods' shared program
+  (`train.make_gp_methods_train`, "gp_methods": the chunk `gpguided reproduce` compiles for them
+  by default), with its number of XLA kernels (fusions, dots, custom calls; copies not counted);
 * a synthetic program of N unrolled steps (x <- sin(x) @ x^T + i, 8 x 8), a stand-in for a larger
   program than the project ships: with jax 0.9.2 the second process crashes (SIGSEGV, a runaway
   recursion in XLA:CPU's object loader while it resolves the cached program's symbols) from a
@@ -52,10 +53,16 @@ if kind == "synthetic":
     lowered = jax.jit(f).lower(jnp.ones((8, 8)))
 else:
     from gpguided_jax import config as config_lib, train as train_lib
-    cfg = config_lib.preset(sys.argv[3], method=sys.argv[4])
+    gp_methods = sys.argv[4] == "gp_methods"  # the GP methods' shared program (reproduce's default)
+    cfg = config_lib.preset(sys.argv[3], method="gp_pg" if gp_methods else sys.argv[4])
     tr = train_lib.make_train(cfg)
     state = jax.eval_shape(lambda k: tr.init(k, cfg, None), jax.random.PRNGKey(0))
-    lowered = jax.jit(lambda s: tr.run_chunk(s, cfg, 50)).lower(state)
+    if gp_methods:
+        shared = train_lib.make_gp_methods_train(cfg)
+        lowered = jax.jit(lambda s, i, c: shared(s, i, c, 50)).lower(
+            state, jnp.int32(0), train_lib.gp_methods_key(cfg))
+    else:
+        lowered = jax.jit(lambda s: tr.run_chunk(s, cfg, 50)).lower(state)
 t0 = time.perf_counter()
 compiled = lowered.compile()
 seconds = time.perf_counter() - t0
@@ -92,8 +99,10 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--presets", nargs="+", default=["paper", "swingup"])
     ap.add_argument("--methods", nargs="+",
-                    default=["reinforce", "gp_pg", "guided_variance", "guided_direction"])
-    ap.add_argument("--synthetic", type=int, nargs="+", default=[100, 200, 300])
+                    default=["reinforce", "gp_pg", "guided_variance", "guided_direction",
+                             "gp_methods"],
+                    help="methods, or gp_methods: the GP methods' shared program")
+    ap.add_argument("--synthetic", type=int, nargs="*", default=[100, 200, 300])
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
 

@@ -157,9 +157,11 @@ def bench_table() -> str:
     return "\n".join(lines)
 
 
+FIRST_MACHINE = "bench_2026-12-02.json"
 SECOND_MACHINE = "bench_2026-12-02_second_machine.json"
 THIRD_MACHINE = "bench_2026-12-02_third_machine.json"
-MACHINE_LABELS = ("the table above", "the second machine", "a third machine, padded GP buffers")
+MACHINE_LABELS = ("the first machine", "the second machine", "a third machine, padded GP buffers",
+                  "the table above: the GP methods as one program")
 
 
 def _figure(get, report, digits):
@@ -171,10 +173,10 @@ def _figure(get, report, digits):
 
 
 def bench_machines_table() -> str:
-    """The headline figures of `bench.json` beside the same command's reports on the machines that
-    replaced this project's machine on 2026-12-02 (same kind: 2 cores; other CPUs). The third ran
-    the code with the GP update's padded buffers (`sparse_gp.padded_slots`)."""
-    names = ("bench.json", SECOND_MACHINE, THIRD_MACHINE)
+    """The headline figures of the command's reports on this project's machines (same kind: 2
+    cores; other CPUs): the first three of 2026-12-02 (the third ran the code with the GP
+    update's padded buffers, `sparse_gp.padded_slots`), then `bench.json`, the table above."""
+    names = (FIRST_MACHINE, SECOND_MACHINE, THIRD_MACHINE, "bench.json")
     reports = []
     for name in names:
         with open(os.path.join(RESULTS, name)) as f:
@@ -274,8 +276,9 @@ def profile_table() -> str:
     h = pr["host"]
     lines.append("")
     lines.append(f"Shares of one update, each part timed alone ({pr['seeds']} seeds, {pr['dtype']}); "
-                 f"host work between chunks (records to host, checkpoint): "
-                 f"{h['host_s_per_chunk']:.2f} s per chunk of {pr['updates']} updates. "
+                 f"host work between chunks (records to host, checkpoint of "
+                 f"{h['checkpoint_bytes'] / 1e6:.1f} MB written): "
+                 f"{1e3 * h['host_s_per_chunk']:.0f} ms per chunk of {h['chunk_updates']} updates. "
                  + _source(*(name for name, _ in runs)))
     return "\n".join(lines)
 

@@ -50,8 +50,9 @@ def test_bench_gp_step_block_update_agrees_with_the_pair_by_pair_loop():
 
 
 def test_compile_cache_check_round_trips_a_program():
-    out = _run(["experiments/compile_cache_check.py", "--presets", "tiny", "--methods", "reinforce",
-                "--synthetic", "2"], fast_compile=False)  # the cache as a user's run fills it
+    # the GP methods' shared program, compiled as a user's run compiles it (the cache keys on flags)
+    out = _run(["experiments/compile_cache_check.py", "--presets", "tiny", "--methods", "gp_methods",
+                "--synthetic", "2"], fast_compile=False)
     assert out["all_shipped_programs_load"] and out["programs"][0]["cold"]["kernels"] > 0
     assert out["synthetic"][0]["loads"]
 
@@ -120,6 +121,7 @@ def test_gpguided_bench_quick_writes_the_report_the_readme_table_is_made_from(tm
     tables = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tables)
     tables.RESULTS = str(tmp_path)  # bench.json and the other machines' reports, all this one
+    (tmp_path / tables.FIRST_MACHINE).write_text(path.read_text())
     (tmp_path / tables.SECOND_MACHINE).write_text(path.read_text())
     (tmp_path / tables.THIRD_MACHINE).write_text(path.read_text())
     table = tables.bench_table()
@@ -147,3 +149,34 @@ def test_bench_slot_padding_compares_padded_and_unpadded_buffers():
         assert row["run_s"]["padded"]["median"] > 0 and row["padded_over_unpadded"] > 0
     gp_pg = out["train"]["float64"]["gp_pg"]  # the same run up to rounding
     assert gp_pg["max_abs_difference_mean_reward"] < 1e-6 and gp_pg["padded_over_unpadded"] > 0
+
+
+def test_profile_host_overhead_times_what_run_method_does_between_chunks(tmp_path):
+    """profile_train's host figure: the records gathered and the checkpoint written, per chunk,
+    for the GP state (the checkpoint holds every leaf of it and all records so far)."""
+    import importlib.util
+    import os
+
+    spec = importlib.util.spec_from_file_location(
+        "profile_train", os.path.join(ROOT, "experiments", "profile_train.py"))
+    prof = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(prof)
+    out = prof.host_overhead([0, 1], 2, repeats=3, preset="tiny")
+    assert len(out["runs_s"]) == 3 and all(t > 0 for t in out["runs_s"])
+    assert out["host_s_per_chunk"] == sorted(out["runs_s"])[1]
+    cfg = prof.config_lib.preset("tiny", method="gp_pg")
+    state_bytes = 2 * 8 * (cfg.gp_capacity + 1) ** 2  # at least the GP's two factors, 2 seeds
+    assert out["checkpoint_bytes"] > state_bytes
+
+
+def test_bench_gp_program_compares_the_shared_program_with_each_methods_own():
+    # compiled as a user's run compiles them (at XLA's optimisation level 0 the two programs'
+    # first gradient norms differ by 3e-8 relative: gp_pg, tiny preset, checked 2026-12-03)
+    out = _run(["experiments/bench_gp_program.py", "--preset", "tiny", "--seeds", "2",
+                "--repeats", "1"], fast_compile=False)
+    assert list(out["methods"]) == ["gp_pg", "guided_variance", "guided_direction"]
+    assert out["shared_compile_s"] > 0
+    for row in out["methods"].values():  # the same run, to rounding
+        assert row["integer_records_equal"]
+        assert row["max_rel_diff_first_update"] < 1e-11 and row["max_rel_diff"] < 1e-6
+        assert row["shared_over_own_run"] == row["shared_run_s"]["median"] / row["own_run_s"]["median"]

@@ -46,12 +46,12 @@ def test_fig5_numbers_equal_the_summary_file_independently():
 
 
 def test_benchmark_prose_quotes_the_result_files():
-    """The figures the benchmark prose repeats (outside the generated tables) equal bench.json
-    and scaling.json at the precision shown."""
+    """The figures the benchmark prose repeats (outside the generated tables) equal
+    bench_2026-12-02.json (the run the bullets discuss) and scaling.json at the precision shown."""
     import json
 
     text = _readme()
-    with open(os.path.join(ROOT, "docs", "results", "bench.json")) as f:
+    with open(os.path.join(ROOT, "docs", "results", "bench_2026-12-02.json")) as f:
         bench = json.load(f)
     with open(os.path.join(ROOT, "docs", "results", "scaling", "scaling.json")) as f:
         scaling = {r["seeds"]: r for r in json.load(f)["results"]}
@@ -236,7 +236,7 @@ def test_profile_prose_quotes_the_profile_files():
         rates = [prof[loop][k]["gp_update_achieved_gflops_per_s"]
                  for k in ("gp_pg", "guided_variance", "guided_direction")]
         assert (float(lo), float(hi)) == (round(min(rates), 1), round(max(rates), 1))
-    with open(os.path.join(res, "bench.json")) as f:
+    with open(os.path.join(res, "bench_2026-12-02.json")) as f:
         ratio = json.load(f)["train"]["numpy_gp_pg"]["ratio_jax_over_numpy"]
     m = re.search(r"which gives the ([\d.]+)×, not 20×", text)
     assert m and float(m.group(1)) == round(ratio, 1)
@@ -335,12 +335,12 @@ def test_failing_seed_prose_quotes_the_summary_files():
 
 def test_benchmark_comparison_with_the_previous_run_quotes_both_files():
     """The targets' comparison with the benchmark run before this stop's changes equals
-    bench_2026-12-02_before.json (and this run's side, bench.json)."""
+    bench_2026-12-02_before.json (and its side, bench_2026-12-02.json)."""
     text = _readme()
     res = os.path.join(ROOT, "docs", "results")
     with open(os.path.join(res, "bench_2026-12-02_before.json")) as f:
         old = json.load(f)
-    with open(os.path.join(res, "bench.json")) as f:
+    with open(os.path.join(res, "bench_2026-12-02.json")) as f:
         new = json.load(f)
     m = re.search(r"`docs/results/bench_2026-12-02_before.json`\): ([\d.]+) s and ([\d.]+) s", text)
     assert m, "previous paper-run sentence not found"
@@ -394,10 +394,10 @@ def test_fast_paths_prose_quotes_its_files():
 
 def test_second_machine_prose_quotes_its_file():
     """The Benchmarks paragraph on the second machine: its figures are those of
-    bench_2026-12-02_second_machine.json (and bench.json for the first), as rounded there."""
+    bench_2026-12-02_second_machine.json (and bench_2026-12-02.json for the first), as rounded there."""
     text = " ".join(_readme().split())
     res = os.path.join(ROOT, "docs", "results")
-    with open(os.path.join(res, "bench.json")) as f:
+    with open(os.path.join(res, "bench_2026-12-02.json")) as f:
         first = json.load(f)
     with open(os.path.join(res, "bench_2026-12-02_second_machine.json")) as f:
         second = json.load(f)
@@ -479,11 +479,11 @@ def test_slot_padding_prose_quotes_its_file():
 
 def test_third_machine_prose_quotes_its_files():
     """The Benchmarks paragraph on the third machine: its figures are those of
-    bench_2026-12-02_third_machine.json and bench.json, and the estimate without the padding is
+    bench_2026-12-02_third_machine.json and bench_2026-12-02.json, and the estimate without the padding is
     the quotient it claims (slot_padding.json)."""
     text = " ".join(_readme().split())
     third = _results_json("bench_2026-12-02_third_machine.json")
-    first = _results_json("bench.json")
+    first = _results_json("bench_2026-12-02.json")
     pad = _results_json("slot_padding.json")
     t = third["train"]
     ratio = t["numpy_gp_pg"]["ratio_jax_over_numpy"]
@@ -527,3 +527,80 @@ def test_status_quotes_the_third_machine():
                 f"{b['paper_run']['warm_s']['median']:.1f} s and the fit "
                 f"{b['train']['hyperfit']['run_s']['median']:.2f} s (missed)")
     assert sentence in text, sentence
+
+
+def test_this_stops_benchmark_prose_quotes_bench_json():
+    """The figures of the 2026-12-03 benchmark paragraph (the GP methods as one program) equal
+    bench.json, bench_2026-12-02.json for the first machine's, and compile_cache_gp_methods.json
+    for the shared program's size, at the precision shown."""
+    text = " ".join(_readme().split())
+    b, first = _results_json("bench.json"), _results_json("bench_2026-12-02.json")
+    t, pr = b["train"], b["paper_run"]
+    own3 = sum(t["methods"][k]["compile_s"] for k in ("gp_pg", "guided_variance", "guided_direction"))
+    m = re.search(r"gp_pg's run ([\d.]+) s against ([\d.]+) s, the fit ([\d.]+) s against ([\d.]+) s\)", text)
+    assert m, "machine sentence not found"
+    assert [float(x) for x in m.groups()] == [
+        round(t["methods"]["gp_pg"]["run_s"]["median"], 2),
+        round(first["train"]["methods"]["gp_pg"]["run_s"]["median"], 2),
+        round(t["hyperfit"]["run_s"]["median"], 2), round(first["train"]["hyperfit"]["run_s"]["median"], 2)]
+    m = re.search(r"The whole paper run: ([\d.]+) s with an empty compile cache, ([\d.]+) s with a warm "
+                  r"one\*\* \(target < 30 s: met warm, \*\*missed cold by ([\d.]+) s\*\*\)\. .*? take "
+                  r"([\d.]+) s in one process against ([\d.]+) s with one program per method: the shared "
+                  r"program compiles in ([\d.]+) s instead of ([\d.]+) s\. The other ([\d.]+) s", text)
+    assert m, "paper-run bullet not found"
+    cold, warm = pr["cold_s"]["median"], pr["warm_s"]["median"]
+    assert [float(x) for x in m.groups()] == [
+        round(cold, 1), round(warm, 1), round(cold - 30, 1), round(t["in_process_total_s"], 1),
+        round(t["in_process_total_per_method_s"], 1), round(t["gp_methods_program"]["compile_s"], 1),
+        round(own3, 1), round(cold - t["in_process_total_s"], 1)]
+    assert warm < 30 < cold
+    m = re.search(r"gp_pg runs ([\d.]+)× as fast as the per-seed NumPy loop\*\* .*? \(([\d.]+) ms per "
+                  r"update against ([\d.]+) ms\) and gp_pg's run slower \(([\d.]+) s\)\. The GP update "
+                  r"alone is ([\d.]+)× its NumPy reference here \(([\d.]+)× on the first machine\): the "
+                  r"reference ran ([\d.]+)× faster than there and the JAX program ([\d.]+)× slower", text)
+    assert m, "ratio bullet not found"
+    n, g, g1 = t["numpy_gp_pg"], b["gp"], first["gp"]
+    assert [float(x) for x in m.groups()] == [
+        round(n["ratio_jax_over_numpy"], 1), round(1e3 * n["seconds_per_update_one_seed"], 1),
+        round(1e3 * first["train"]["numpy_gp_pg"]["seconds_per_update_one_seed"], 1),
+        round(t["methods"]["gp_pg"]["run_s"]["median"], 2), round(g["ratio"], 1), round(g1["ratio"], 1),
+        round(g["numpy_updates_per_s"] / g1["numpy_updates_per_s"], 2),
+        round(g1["jax_updates_per_s"] / g["jax_updates_per_s"], 2)]
+    m = re.search(r"The hyperparameter fit takes ([\d.]+) s\*\* with the default, ([\d.]+) s with L-BFGS "
+                  r"\(target ≤ 3 s: \*\*missed by the default by ([\d.]+) s", text)
+    assert m, "fit bullet not found"
+    fit = t["hyperfit"]["run_s"]["median"]
+    assert [float(x) for x in m.groups()] == [
+        round(fit, 2), round(t["hyperfit_alternative"]["run_s"]["median"], 2), round(fit - 3, 2)]
+    g = t["gp_methods_program"]
+    m = re.search(r"compiles in ([\d.]+) s against ([\d.]+) s for the three programs it replaces", text)
+    assert m and [float(x) for x in m.groups()] == [round(g["compile_s"], 1), round(own3, 1)]
+    cache = {p["preset"]: p for p in _results_json("compile_cache_gp_methods.json")["programs"]}
+    m = re.search(r"(\d+) kernels for the paper preset and (\d+) for the swing-up preset, and both load",
+                  text)
+    assert m and [int(x) for x in m.groups()] == [cache["paper"]["cold"]["kernels"],
+                                                  cache["swingup"]["cold"]["kernels"]]
+    assert all(p["loads"] and p["method"] == "gp_methods" for p in cache.values())
+
+
+def test_gp_program_prose_quotes_its_file():
+    """The shared-vs-own program comparison as the compilation paragraph repeats it equals
+    gp_program.json."""
+    text = " ".join(_readme().split())
+    d = _results_json("gp_program.json")["methods"]
+    m = re.search(r"gp_pg's run takes ([\d.]+)× its own program's time, guided_variance's ([\d.]+)× "
+                  r"\(slower in each pair\) and guided_direction's ([\d.]+)×; ([\d.]+) s against ([\d.]+) s "
+                  r"for the three\. .*? are the same both ways, guided_variance's floats too, bit for bit, "
+                  r"and gp_pg's and guided_direction's agree within a relative ([\d.e-]+) and ([\d.e-]+)\.",
+                  text)
+    assert m, "shared-program sentence not found"
+    g = m.groups()
+    assert [float(x) for x in g[:3]] == [round(d[k]["shared_over_own_run"], 3)
+                                         for k in ("gp_pg", "guided_variance", "guided_direction")]
+    gv = d["guided_variance"]
+    assert all(a > b for a, b in zip(gv["shared_run_s"]["runs"], gv["own_run_s"]["runs"]))
+    assert float(g[3]) == round(sum(r["shared_run_s"]["median"] for r in d.values()), 1)
+    assert float(g[4]) == round(sum(r["own_run_s"]["median"] for r in d.values()), 1)
+    assert all(r["integer_records_equal"] for r in d.values()) and gv["max_rel_diff"] == 0.0
+    assert float(g[5]) == float(f"{d['gp_pg']['max_rel_diff']:.0e}")
+    assert float(g[6]) == float(f"{d['guided_direction']['max_rel_diff']:.0e}")
