@@ -55,6 +55,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--preset", default="paper")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--methods", nargs="+", default=list(train_lib.GP_METHODS),
+                    choices=train_lib.GP_METHODS, help="the methods to time against their own program")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     single_threaded_lapack()
@@ -68,12 +70,13 @@ def main(argv=None) -> int:
 
     shared = reproduce.gp_methods_program(cfg0, mesh, loop, cfg0.num_updates, donate=False)
     runs = {}
-    for method in train_lib.GP_METHODS:
+    for method in args.methods:
         cfg = config_lib.preset(args.preset, method=method)
         runs[method] = (cfg, bench.initial_states(cfg, mesh, keys, priors),
                         reproduce.gp_method_args(cfg, len(keys), mesh))
     t0 = time.perf_counter()
-    shared = shared.lower(runs["gp_pg"][1], *runs["gp_pg"][2]).compile()
+    first = runs[args.methods[0]]
+    shared = shared.lower(first[1], *first[2]).compile()
     out = {"seeds": args.seeds, "devices": int(mesh.devices.size), "preset": args.preset,
            "seed_loop": loop, "shared_compile_s": time.perf_counter() - t0, "methods": {}}
     for method, (cfg, state, method_args) in runs.items():
