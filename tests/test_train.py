@@ -145,9 +145,19 @@ def improve_priors():
     return jax.jit(jax.vmap(T.make_train(_improve_config("gp_pg")).fit_kernel_for_seed))(IMPROVE_SEEDS)
 
 
-@pytest.mark.xdist_group("improve")  # one worker fits the shared priors
+@pytest.fixture(scope="session")
+def improve_program():
+    """The three GP methods' one program (`train.make_gp_methods_train`, as `gpguided reproduce`
+    runs them) over the seeds, from their keys and priors: compiled once for the three tests."""
+    cfg = _improve_config("gp_pg")
+    train, shared = T.make_train(cfg), T.make_gp_methods_train(cfg)
+    return jax.jit(jax.vmap(lambda k, p, i, c: shared(train.init(k, c, p), i, c, cfg.num_updates),
+                            in_axes=(0, 0, None, None)))
+
+
+@pytest.mark.xdist_group("improve")  # one worker fits the shared priors and compiles the program
 @pytest.mark.parametrize("method", ["gp_pg", "guided_variance", "guided_direction"])
-def test_gp_methods_improve_on_a_small_problem(method, improve_priors):
+def test_gp_methods_improve_on_a_small_problem(method, improve_priors, improve_program):
     """The paper preset's task at a reduced size (120 updates, M = 30; 4 fixed seeds), with the
     preset's hyperparameter fit, Gibbs candidates and gradient clipping.
 
@@ -155,12 +165,13 @@ def test_gp_methods_improve_on_a_small_problem(method, improve_priors):
     0.01 on average over the seeds (measured: +0.037 to +0.085; the noise-free optimum is ~0.1
     above the start). Earlier versions of this test also shrank the hyperparameter fit (500
     samples) and the candidates (K = 8); with those, guided_variance and guided_direction did not
-    improve on some seeds.
+    improve on some seeds. The methods run as `gpguided reproduce` runs them, one program for the
+    three (each method's own program: `tiny_runs`, and equal to rounding:
+    test_gp_methods_program_runs_each_method_as_its_own_program).
     """
     cfg = _improve_config(method)
-    train = T.make_train(cfg)
-    _, rec = jax.jit(jax.vmap(lambda k, p: train.run_chunk(train.init(k, cfg, p), cfg)))(
-        IMPROVE_SEEDS, improve_priors)
+    _, rec = improve_program(IMPROVE_SEEDS, improve_priors, np.int32(T.GP_METHODS.index(method)),
+                             T.gp_methods_key(cfg))
     r = np.asarray(rec.mean_reward)
     assert r[:, -20:].mean() > r[:, :20].mean() + 0.01, (r[:, :20].mean(1), r[:, -20:].mean(1))
     assert np.all(np.asarray(rec.gp_guard) == 0) and np.all(np.asarray(rec.nonfinite_grad) == 0)
