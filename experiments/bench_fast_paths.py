@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import gpguided_jax
-from gpguided_jax import bench, distributed, hyperfit, kernels, reproduce
+from gpguided_jax import bench, hyperfit, kernels, reproduce
 from gpguided_jax import config as config_lib
 from gpguided_jax import train as train_lib
 from gpguided_jax.cli import available_cores, single_threaded_lapack
@@ -133,9 +133,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     single_threaded_lapack()
     jax.config.update("jax_num_cpu_devices", available_cores())
-    mesh = reproduce.make_mesh(None, args.seeds)
-    keys = distributed.shard(reproduce.seed_keys(reproduce.pad_seeds(range(args.seeds),
-                                                                      mesh.devices.size)), mesh)
+    mesh, keys = bench.seed_mesh(args.seeds)
     t0 = time.perf_counter()
     out = {"seeds": args.seeds, "devices": int(mesh.devices.size), "date": time.strftime("%Y-%m-%d"),
            "jax": jax.__version__, "preset": args.preset,

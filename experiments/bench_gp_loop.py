@@ -27,7 +27,7 @@ import jax
 import numpy as np
 
 import gpguided_jax
-from gpguided_jax import bench, distributed, reproduce, sparse_gp
+from gpguided_jax import bench, reproduce, sparse_gp
 from gpguided_jax import config as config_lib
 from gpguided_jax import train as train_lib
 from gpguided_jax.cli import available_cores, single_threaded_lapack
@@ -45,9 +45,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     single_threaded_lapack()
     jax.config.update("jax_num_cpu_devices", available_cores())
-    mesh = reproduce.make_mesh(None, args.seeds)
-    seeds = reproduce.pad_seeds(range(args.seeds), mesh.devices.size)
-    keys = distributed.shard(reproduce.seed_keys(seeds), mesh)
+    mesh, keys = bench.seed_mesh(args.seeds)
     fit = train_lib.make_train(config_lib.preset(args.preset, method="gp_pg")).fit_kernel_for_seed
     priors = reproduce.per_seed_program(fit, mesh)(keys)
     original = sparse_gp.update_batch

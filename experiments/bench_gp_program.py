@@ -27,7 +27,7 @@ import jax
 import numpy as np
 
 import gpguided_jax
-from gpguided_jax import bench, distributed, reproduce
+from gpguided_jax import bench, reproduce
 from gpguided_jax import config as config_lib
 from gpguided_jax import train as train_lib
 from gpguided_jax.cli import available_cores, single_threaded_lapack
@@ -61,25 +61,15 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     single_threaded_lapack()
     jax.config.update("jax_num_cpu_devices", available_cores())
-    mesh = reproduce.make_mesh(None, args.seeds)
-    keys = distributed.shard(reproduce.seed_keys(reproduce.pad_seeds(range(args.seeds),
-                                                                     mesh.devices.size)), mesh)
+    mesh, keys = bench.seed_mesh(args.seeds)
     cfg0 = config_lib.preset(args.preset, method="gp_pg")
     priors = reproduce.per_seed_program(train_lib.make_train(cfg0).fit_kernel_for_seed, mesh)(keys)
     loop = reproduce.resolve_seed_loop("auto", mesh)
-
-    shared = reproduce.gp_methods_program(cfg0, mesh, loop, cfg0.num_updates, donate=False)
-    runs = {}
-    for method in args.methods:
-        cfg = config_lib.preset(args.preset, method=method)
-        runs[method] = (cfg, bench.initial_states(cfg, mesh, keys, priors),
-                        reproduce.gp_method_args(cfg, len(keys), mesh))
-    t0 = time.perf_counter()
-    first = runs[args.methods[0]]
-    shared = shared.lower(first[1], *first[2]).compile()
+    shared, shared_compile, runs = bench.compiled_gp_methods_program(
+        args.preset, args.methods, mesh, loop, keys, priors)
     out = {"seeds": args.seeds, "devices": int(mesh.devices.size), "preset": args.preset,
-           "seed_loop": loop, "shared_compile_s": time.perf_counter() - t0, "methods": {}}
-    for method, (cfg, state, method_args) in runs.items():
+           "seed_loop": loop, "shared_compile_s": shared_compile, "methods": {}}
+    for method, (cfg, (state, *method_args)) in runs.items():
         train = train_lib.make_train(cfg)
         own = reproduce.per_seed_program(
             functools.partial(train.run_chunk, cfg=cfg, num_updates=cfg.num_updates), mesh, loop)

@@ -118,9 +118,7 @@ def main(argv=None) -> dict:
     jax.config.update("jax_num_cpu_devices", cores)
     jax.config.update("jax_enable_x64", True)
     seeds = 2 if args.quick else args.seeds
-    mesh = reproduce.make_mesh(None, seeds)
-    keys = distributed.shard(reproduce.seed_keys(reproduce.pad_seeds(range(seeds),
-                                                                     mesh.devices.size)), mesh)
+    mesh, keys = bench.seed_mesh(seeds)
     t0 = time.perf_counter()
     report = {"date": time.strftime("%Y-%m-%d"), "jax": jax.__version__, "seeds": seeds,
               "devices": int(mesh.devices.size), "quick": args.quick,

@@ -229,6 +229,14 @@ def numpy_gp_pg_seconds_per_update(cfg, prior, num_updates, rng) -> float:
     return (time.perf_counter() - t0) / num_updates
 
 
+def seed_mesh(seeds: int):
+    """The mesh `gpguided reproduce` uses for seeds 0 .. seeds-1 in one process, and their keys
+    (padded to the mesh) sharded over it: (mesh, keys)."""
+    mesh = reproduce.make_mesh(None, seeds)
+    keys = reproduce.seed_keys(reproduce.pad_seeds(range(seeds), mesh.devices.size))
+    return mesh, distributed.shard(keys, mesh)
+
+
 def initial_states(cfg, mesh, keys, priors):
     """The seeds' initial `TrainState`s as `gpguided reproduce` makes them: a GP method starts from
     the fitted `priors` (shared by the GP methods), REINFORCE from none."""
@@ -238,12 +246,27 @@ def initial_states(cfg, mesh, keys, priors):
     return reproduce.per_seed_program(lambda k: train.init(k, cfg), mesh)(keys)
 
 
+def compiled_gp_methods_program(preset: str, methods, mesh, seed_loop: str, keys, priors):
+    """The GP methods' one program (`reproduce.gp_methods_program`, without donation: timed
+    repeatedly on the same states) for `preset`'s whole run, compiled once. Returns (compiled,
+    compile seconds, {method: (cfg, arguments)}), each method's arguments its initial states from
+    `priors` and its `reproduce.gp_method_args`."""
+    cfg0 = config_lib.preset(preset, method=methods[0])
+    program = reproduce.gp_methods_program(cfg0, mesh, seed_loop, cfg0.num_updates, donate=False)
+    runs = {}
+    for method in methods:
+        cfg = config_lib.preset(preset, method=method)
+        runs[method] = cfg, (initial_states(cfg, mesh, keys, priors),
+                             *reproduce.gp_method_args(cfg, len(keys), mesh))
+    t0 = time.perf_counter()
+    compiled = program.lower(*runs[methods[0]][1]).compile()
+    return compiled, time.perf_counter() - t0, runs
+
+
 def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "paper") -> dict:
     """The hyperparameter fit and each method's whole run, compiled as `gpguided reproduce`
     compiles them (`reproduce.per_seed_program` over the seed mesh), timed apart from compilation."""
-    mesh = reproduce.make_mesh(None, seeds)
-    keys = reproduce.seed_keys(reproduce.pad_seeds(range(seeds), mesh.devices.size))
-    keys = distributed.shard(keys, mesh)
+    mesh, keys = seed_mesh(seeds)
     out: dict = {"seeds": seeds, "devices": [str(d) for d in mesh.devices.flat],
                  "seed_loop": reproduce.resolve_seed_loop("auto", mesh), "methods": {}}
     cfg_gp = config_lib.preset(preset, method="gp_pg")
@@ -283,19 +306,12 @@ def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "pap
         out["methods"][method] = one(method)
 
     # The GP methods as `gpguided reproduce` runs them by default: one program, compiled once.
-    shared = reproduce.gp_methods_program(cfg_gp, mesh, out["seed_loop"], cfg_gp.num_updates,
-                                          donate=False)  # timed repeatedly on the same states
-    runs = {}
-    for method in train_lib.GP_METHODS:
-        cfg = config_lib.preset(preset, method=method)
-        runs[method] = (initial_states(cfg, mesh, keys, priors),
-                        *reproduce.gp_method_args(cfg, len(keys), mesh))
-    t0 = time.perf_counter()
-    compiled = shared.lower(*runs[train_lib.GP_METHODS[0]]).compile()
+    compiled, compile_s, runs = compiled_gp_methods_program(preset, train_lib.GP_METHODS, mesh,
+                                                            out["seed_loop"], keys, priors)
     out["gp_methods_program"] = {
-        "compile_s": time.perf_counter() - t0,
+        "compile_s": compile_s,
         "methods": {m: {"run_s": _stats(_timed(lambda a=a: compiled(*a), repeats))}
-                    for m, a in runs.items()}}
+                    for m, (_, a) in runs.items()}}
     prior0 = jax.tree_util.tree_map(lambda x: np.asarray(x)[0], jax.device_get(priors))
     # the same updates (same draws) `repeats` times: the median is the figure, as on the JAX side
     numpy_t = _stats([numpy_gp_pg_seconds_per_update(cfg_gp, prior0, numpy_updates,

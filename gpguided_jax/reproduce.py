@@ -315,6 +315,11 @@ def _load_checkpoint(path, template, digest, mesh, progress):
     return state, records, done
 
 
+def _check_gp_program(gp_program: str) -> None:
+    if gp_program not in GP_PROGRAMS:
+        raise ValueError(f"gp_program must be one of {GP_PROGRAMS}, got {gp_program!r}")
+
+
 _SHARED_PROGRAMS: dict = {}  # (static config, mesh, loop, updates, donate) -> jitted chunk program
 _SHARED_PROGRAMS_KEPT = 8
 
@@ -331,8 +336,7 @@ def chunk_program(cfg: config_lib.TrainConfig, mesh: Mesh, seed_loop: str, num_u
     others. 'per_method' compiles `train.make_train(cfg).run_chunk` for each method (the records
     agree with the shared program's to rounding). REINFORCE always has its own program.
     """
-    if gp_program not in GP_PROGRAMS:
-        raise ValueError(f"gp_program must be one of {GP_PROGRAMS}, got {gp_program!r}")
+    _check_gp_program(gp_program)
     loop = resolve_seed_loop(seed_loop, mesh)
     if not cfg.uses_gp or gp_program == "per_method":
         train = train_lib.make_train(cfg)
@@ -411,8 +415,7 @@ def run_method(
     Returns:
       (records, state): dict field -> (seeds, updates_done) records, and the final `TrainState`.
     """
-    if gp_program not in GP_PROGRAMS:
-        raise ValueError(f"gp_program must be one of {GP_PROGRAMS}, got {gp_program!r}")
+    _check_gp_program(gp_program)
     mesh = mesh or make_mesh()
     n_dev = mesh.devices.size
     seeds = list(map(int, seeds))
@@ -717,8 +720,7 @@ def reproduce(
     share one compiled program (`gp_program='shared'`; 'per_method' compiles one each, see
     `chunk_program`).
     """
-    if gp_program not in GP_PROGRAMS:
-        raise ValueError(f"gp_program must be one of {GP_PROGRAMS}, got {gp_program!r}")
+    _check_gp_program(gp_program)
     seeds = list(map(int, seeds))
     main = distributed.is_main()
     if not main:  # one voice: process 0 reports progress and writes the results
