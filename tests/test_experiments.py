@@ -113,6 +113,7 @@ def test_gpguided_bench_quick_writes_the_report_the_readme_table_is_made_from(tm
     assert math.isclose(g["ratio"], g["jax_updates_per_s"] / g["numpy_updates_per_s"], rel_tol=1e-12)
     for s in report["env"].values():
         check_stats(s["run_s"])
+    assert report["paper_run"]["methods"] == ["reinforce"]  # quick: the cheapest whole command
     check_stats(report["paper_run"]["cold_s"], runs=1)  # the quick run times the command once
     check_stats(report["paper_run"]["warm_s"], runs=1)
 

@@ -461,14 +461,18 @@ def test_a_method_alone_equals_it_among_the_others(tmp_path):
     """`reproduce` runs its GP methods through one shared program, whichever of them it is asked
     for, so a method's records are the same bit for bit alone and with the others, and compiled
     once for all of them (that the shared program agrees with each method's own to rounding:
-    test_gp_methods_program_runs_each_method_as_its_own_program)."""
+    test_gp_methods_program_runs_each_method_as_its_own_program). A second run in the process
+    reuses the first's jitted hyperparameter fit."""
     kw = dict(preset="tiny", seeds=[0, 1], progress=lambda m: None)
     R._SHARED_PROGRAMS.clear()
+    R._FIT_PROGRAMS.clear()
     R.reproduce(out_dir=str(tmp_path / "all"), methods=list(T.GP_METHODS), **kw)
     assert len(R._SHARED_PROGRAMS) == 1  # one program, one chunk length
     (program,) = R._SHARED_PROGRAMS.values()
     assert program._cache_size() == 1  # compiled once, for the three methods
     R.reproduce(out_dir=str(tmp_path / "alone"), methods=["guided_variance"], **kw)
+    # the second run (another directory: no kernels.npz) fits with the first run's program
+    assert len(R._FIT_PROGRAMS) == 1 and next(iter(R._FIT_PROGRAMS.values()))._cache_size() == 1
     every, alone = (np.load(tmp_path / d / "results.npz") for d in ("all", "alone"))
     assert list(every["methods"]) == list(T.GP_METHODS)
     for k in R.RECORD_FIELDS:
