@@ -66,6 +66,11 @@ def run_script(args, *, fast_compile=True, timeout=600, **env):
     return proc
 
 
+# The in-process runs of `reproduce` (test_train.py, test_cli.py) share their seeds and chunk
+# length: the GP methods' one program and the fit are compiled once for all of them (in one
+# worker; the other loads them from the session's compilation cache).
+REPRODUCE_KW = dict(preset="tiny", seeds=[0, 1], chunk_size=2)
+
 # The reference run of the multi-device tests (tests/test_distributed.py, test_train.py's
 # test_two_host_devices_equal_one): the tiny preset's gp_pg, 4 seeds in chunks of 2.
 TWO_DEVICE_ARGS = ["reproduce", "--preset", "tiny", "--seeds", "4", "--methods", "gp_pg",

@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import fast_compile_env
+from conftest import REPRODUCE_KW, fast_compile_env
 
 from gpguided_jax import cli
 from gpguided_jax import reproduce as R
@@ -118,7 +118,7 @@ def test_cli_runs_in_float32(tmp_path):
 
 
 def test_corrupt_checkpoint_and_kernels_are_set_aside(tmp_path):
-    kw = dict(preset="tiny", seeds=[0, 1], methods=["gp_pg"], chunk_size=3)
+    kw = dict(REPRODUCE_KW, methods=["gp_pg"])
     first = R.reproduce(out_dir=str(tmp_path), progress=lambda m: None, **kw)
     ckpt, kern = tmp_path / "checkpoint_gp_pg.npz", tmp_path / "kernels.npz"
     ckpt.write_bytes(b"not a zip file")

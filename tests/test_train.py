@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from conftest import TWO_DEVICE_ARGS, run_script
+from conftest import REPRODUCE_KW, TWO_DEVICE_ARGS, run_script
 
 from gpguided_jax import config as C
 from gpguided_jax import reproduce as R
@@ -178,7 +178,7 @@ def test_gp_methods_improve_on_a_small_problem(method, improve_priors, improve_p
 
 
 def test_resume_equals_uninterrupted(tmp_path):
-    kw = dict(preset="tiny", seeds=[0, 1, 2], methods=["gp_pg"], chunk_size=2)
+    kw = dict(REPRODUCE_KW, methods=["gp_pg"])
     full = R.reproduce(out_dir=str(tmp_path / "full"), progress=lambda m: None, **kw)
     assert full["complete"]
     part = R.reproduce(out_dir=str(tmp_path / "part"), max_chunks=1, progress=lambda m: None, **kw)
@@ -463,7 +463,7 @@ def test_a_method_alone_equals_it_among_the_others(tmp_path):
     once for all of them (that the shared program agrees with each method's own to rounding:
     test_gp_methods_program_runs_each_method_as_its_own_program). A second run in the process
     reuses the first's jitted hyperparameter fit."""
-    kw = dict(preset="tiny", seeds=[0, 1], progress=lambda m: None)
+    kw = dict(REPRODUCE_KW, progress=lambda m: None)
     R._SHARED_PROGRAMS.clear()
     R._FIT_PROGRAMS.clear()
     R.reproduce(out_dir=str(tmp_path / "all"), methods=list(T.GP_METHODS), **kw)
