@@ -529,6 +529,28 @@ def test_status_quotes_the_third_machine():
     assert sentence in text, sentence
 
 
+def test_the_avx2_machines_sentence_quotes_its_bench_file():
+    """The Status paragraph's figures of the AMD Zen 3 (AVX2) stop equal its bench report."""
+    text = " ".join(_readme().split())
+    b = _results_json("bench_2026-12-03_zen3.json")
+    t, pr = b["train"], b["paper_run"]
+    m = re.search(r"bench_2026-12-03_zen3\.json`, this stop's code\): the cold run "
+                  r"([\d.]+) s, the warm one ([\d.]+) s, the fit ([\d.]+) s \(all missed\) and the ratio "
+                  r"([\d.]+)× \(met, because the NumPy loop runs slower there: ([\d.]+) ms per update "
+                  r"against gp_pg's run of ([\d.]+) s\), with the shared program compiled in ([\d.]+) s "
+                  r"against ([\d.]+) s for three", text)
+    assert m, "Zen 3 sentence not found"
+    own3 = sum(t["methods"][k]["compile_s"] for k in ("gp_pg", "guided_variance", "guided_direction"))
+    fit = t["hyperfit"]["run_s"]["median"]
+    assert [float(x) for x in m.groups()] == [
+        round(pr["cold_s"]["median"], 1), round(pr["warm_s"]["median"], 1), round(fit, 2),
+        round(t["numpy_gp_pg"]["ratio_jax_over_numpy"], 1),
+        round(1e3 * t["numpy_gp_pg"]["seconds_per_update_one_seed"], 1),
+        round(t["methods"]["gp_pg"]["run_s"]["median"], 2),
+        round(t["gp_methods_program"]["compile_s"], 1), round(own3, 1)]
+    assert pr["warm_s"]["median"] > 30 and fit > 3 and t["numpy_gp_pg"]["ratio_jax_over_numpy"] >= 20
+
+
 def test_this_stops_benchmark_prose_quotes_bench_json():
     """The figures of the 2026-12-03 benchmark paragraph (the GP methods as one program) equal
     bench.json, bench_2026-12-02.json for the first machine's, and compile_cache_gp_methods.json
