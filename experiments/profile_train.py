@@ -178,9 +178,7 @@ def host_overhead(seeds: list[int], chunk: int, loop: str = "auto", repeats: int
         path = os.path.join(d, "checkpoint_gp_pg.npz")
         for i in range(repeats):
             t0 = time.perf_counter()
-            got = distributed.gather(rec)
-            records = {k: np.concatenate([records[k], np.asarray(getattr(got, k))], axis=1)
-                       for k in reproduce.RECORD_FIELDS}
+            _, records = reproduce.append_records(records, rec)
             reproduce._save_checkpoint(path, state, records, i + 1, "profile")
             times.append(time.perf_counter() - t0)
         size = os.path.getsize(path)

@@ -324,19 +324,39 @@ def _check_gp_program(gp_program: str) -> None:
 
 _SHARED_PROGRAMS: dict = {}  # (static config, mesh, loop, updates, donate) -> jitted chunk program
 _FIT_PROGRAMS: dict = {}  # (config but the method, mesh, loop) -> jitted hyperparameter fit
+_OWN_PROGRAMS: dict = {}  # (kind, config, mesh, loop, ...) -> a method's own init or chunk program
 _PROGRAMS_KEPT = 8  # per cache: the last few
 
 
 def _kept(cache: dict, key, make: Callable):
     """`cache[key]`, made by `make()` if missing; the cache keeps the last `_PROGRAMS_KEPT`. A
     process that runs `reproduce` again (a notebook, the tests) then reuses the jitted programs
-    and does not trace and compile them again (the tiny fit: 3.5 s each time, on 2 cores)."""
+    (the fit, the initial states, the chunks) and does not trace and compile them again (a
+    second tiny gp_pg run: 4.55 s when they were made anew, 0.47 s, on 2 cores)."""
     program = cache.get(key)
     if program is None:
         while len(cache) >= _PROGRAMS_KEPT:
             cache.pop(next(iter(cache)))
         program = cache[key] = make()
     return program
+
+
+def _config_key(cfg: config_lib.TrainConfig) -> str:
+    """A config's every field, as a cache key (the programs bake its values in)."""
+    return json.dumps(cfg.to_json_dict(), sort_keys=True)
+
+
+def init_program(cfg: config_lib.TrainConfig, mesh: Mesh, seed_loop: str, with_kernels: bool):
+    """The jitted initial states over the sharded seed axis, `init(keys[, kernels])`, kept for
+    the process (`_kept`)."""
+    loop = resolve_seed_loop(seed_loop, mesh)
+
+    def make():
+        train = train_lib.make_train(cfg)
+        return per_seed_program((lambda k, kern: train.init(k, cfg, kern)) if with_kernels
+                                else (lambda k: train.init(k, cfg)), mesh, loop)
+
+    return _kept(_OWN_PROGRAMS, ("init", _config_key(cfg), mesh, loop, with_kernels), make)
 
 
 def chunk_program(cfg: config_lib.TrainConfig, mesh: Mesh, seed_loop: str, num_updates: int,
@@ -354,9 +374,12 @@ def chunk_program(cfg: config_lib.TrainConfig, mesh: Mesh, seed_loop: str, num_u
     _check_gp_program(gp_program)
     loop = resolve_seed_loop(seed_loop, mesh)
     if not cfg.uses_gp or gp_program == "per_method":
-        train = train_lib.make_train(cfg)
-        return per_seed_program(lambda s: train.run_chunk(s, cfg, num_updates), mesh, loop,
-                                donate=True)
+        def make():
+            train = train_lib.make_train(cfg)
+            return per_seed_program(lambda s: train.run_chunk(s, cfg, num_updates), mesh, loop,
+                                    donate=True)
+
+        return _kept(_OWN_PROGRAMS, ("chunk", _config_key(cfg), mesh, loop, num_updates), make)
     program = gp_methods_program(cfg, mesh, loop, num_updates)
     args = {}  # the method index and the config, one row per seed, placed once
 
@@ -379,6 +402,7 @@ def gp_methods_program(cfg: config_lib.TrainConfig, mesh: Mesh, seed_loop: str, 
     loop = resolve_seed_loop(seed_loop, mesh)
     key_cfg = train_lib.gp_methods_key(cfg)
     cache_key = (tuple(sorted(key_cfg.static_dict().items())), mesh, loop, num_updates, donate)
+
     def make():
         run_chunk = train_lib.make_gp_methods_train(key_cfg)
         return per_seed_program(lambda s, i, c: run_chunk(s, i, c, num_updates), mesh, loop,
@@ -434,14 +458,12 @@ def run_method(
     n_real = len(seeds)
     padded = pad_seeds(seeds, n_dev)
     pad = len(padded) - n_real
-    train = train_lib.make_train(cfg)
     keys = _shard(seed_keys(padded), mesh)
     if kernels is not None and pad:
         kernels = jax.tree_util.tree_map(lambda x: np.concatenate([x, x[-pad:]]), kernels)
 
     loop = resolve_seed_loop(seed_loop, mesh)
-    init = per_seed_program((lambda k, kern: train.init(k, cfg, kern)) if kernels is not None
-                            else (lambda k: train.init(k, cfg)), mesh, loop)
+    init = init_program(cfg, mesh, loop, kernels is not None)
     chunk_size = min(chunk_size, cfg.num_updates)
     n_chunks = -(-cfg.num_updates // chunk_size)
     compiled = {}
@@ -456,31 +478,41 @@ def run_method(
                      [str(d) for d in mesh.devices.flat], loop,
                      gp_program if cfg.uses_gp else "per_method")
     args = (keys,) if kernels is None else (keys, _shard(kernels, mesh))
-    template = jax.eval_shape(init, *args)
-    loaded = _load_checkpoint(ckpt, template, digest, mesh, progress)
-    if loaded is not None:
-        state, records, done = loaded
-        progress(f"[{cfg.method}] resuming from {ckpt}: {done}/{n_chunks} chunks done")
-    else:
-        t0 = time.perf_counter()
-        state = init(*args)
-        jax.block_until_ready(state)
-        progress(f"[{cfg.method}] init {time.perf_counter() - t0:.1f}s")
-        records, done = {k: np.zeros((len(padded), 0)) for k in RECORD_FIELDS}, 0
+    state, records, done = _resume_or_init(cfg, init, args, len(padded), ckpt, digest, mesh,
+                                           n_chunks, progress)
 
     t_start, chunks_this_call = time.perf_counter(), 0
     while done < n_chunks and (max_chunks is None or chunks_this_call < max_chunks):
         n = min(chunk_size, cfg.num_updates - done * chunk_size)
         state, rec = chunk_fn(n)(state)
-        rec = distributed.gather(rec)
-        records = {k: np.concatenate([records[k], np.asarray(getattr(rec, k))], axis=1)
-                   for k in RECORD_FIELDS}
+        rec, records = append_records(records, rec)
         done += 1
         chunks_this_call += 1
         _save_checkpoint(ckpt, state, records, done, digest)
         rate = chunks_this_call * chunk_size / max(time.perf_counter() - t_start, 1e-9)
         progress(_chunk_progress(cfg, rec, n_real, min(done * chunk_size, cfg.num_updates), rate))
     return {k: v[:n_real] for k, v in records.items()}, state
+
+
+def _resume_or_init(cfg, init, args, num_seeds, ckpt, digest, mesh, n_chunks, progress):
+    """(state, records, chunks done): from the checkpoint if it matches `digest`, else the initial
+    states `init(*args)` of the `num_seeds` (padded) seeds with no records."""
+    loaded = _load_checkpoint(ckpt, jax.eval_shape(init, *args), digest, mesh, progress)
+    if loaded is not None:
+        progress(f"[{cfg.method}] resuming from {ckpt}: {loaded[2]}/{n_chunks} chunks done")
+        return loaded
+    t0 = time.perf_counter()
+    state = jax.block_until_ready(init(*args))
+    progress(f"[{cfg.method}] init {time.perf_counter() - t0:.1f}s")
+    return state, {k: np.zeros((num_seeds, 0)) for k in RECORD_FIELDS}, 0
+
+
+def append_records(records: dict, rec) -> tuple:
+    """A chunk's records (all processes' seeds) on the host, and the run's `records` with them
+    appended: (the chunk's records, the run's)."""
+    rec = distributed.gather(rec)
+    return rec, {k: np.concatenate([records[k], np.asarray(getattr(rec, k))], axis=1)
+                 for k in RECORD_FIELDS}
 
 
 def _chunk_progress(cfg: config_lib.TrainConfig, rec, n_real: int, updates_done: int,
