@@ -26,10 +26,11 @@ def _cli(out, *extra):
 
 def _two_processes(out, *extra):
     port = _free_port()
+    env = fast_compile_env(level0_only=True)  # compared bit for bit with `two_device_run`
     procs = [subprocess.Popen(_cli(out, "--coordinator", f"localhost:{port}", "--num-processes", "2",
                                    "--process-id", str(i), *extra),
-                              cwd=ROOT, env=fast_compile_env(), stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True)
+                              cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True)
              for i in range(2)]
     outs = [p.communicate(timeout=300) for p in procs]
     for p, (_, e) in zip(procs, outs):

@@ -25,7 +25,9 @@ def test_bench_env_prints_json():
 
 
 def test_bench_seed_loop_prints_json():
-    out = _run(["experiments/bench_seed_loop.py", "--seeds", "3", "--points", "60", "--repeats", "1"])
+    # level 0 alone: with XLA's older fusion emitters the two loops' posteriors differ by rounding
+    out = _run(["experiments/bench_seed_loop.py", "--seeds", "3", "--points", "60", "--repeats", "1"],
+               fast_compile="level0")
     assert out["vmap"]["run_s"] > 0 and out["map"]["run_s"] > 0
     # a batch runs the insertion branch at least as often as any one of its seeds needs it
     assert 0 < out["joins_fraction_one_seed"] <= out["any_seed_joins_fraction"] <= 1
@@ -58,8 +60,9 @@ def test_compile_cache_check_round_trips_a_program():
 
 
 def test_bench_fast_paths_compares_each_fast_path_with_the_one_it_replaced():
+    # level 0 alone: with XLA's older fusion emitters the two roll-outs' records differed by 7.7e-6
     out = _run(["experiments/bench_fast_paths.py", "--preset", "tiny", "--seeds", "2",
-                "--repeats", "1"])
+                "--repeats", "1"], fast_compile="level0")
     # the blocked inverse changes the fit only by rounding
     assert out["fit"]["max_relative_difference_of_fitted_hyperparameters"] < 1e-6
     assert out["fit"]["plain"]["run_s_median"] > 0 and out["fit"]["blocked"]["run_s_median"] > 0

@@ -211,7 +211,8 @@ def test_two_host_devices_equal_one(tmp_path, two_device_run):
     for n, loop in ((1, "auto"), (2, "vmap")):
         out = outs[n, loop] = tmp_path / f"dev{n}_{loop}"
         run_script(["-m", "gpguided_jax.cli", *TWO_DEVICE_ARGS, "--devices", n, "--seed-loop",
-                    loop, "--out", out], XLA_FLAGS="--xla_force_host_platform_device_count=2")
+                    loop, "--out", out], fast_compile="level0",  # as `two_device_run`
+                   XLA_FLAGS="--xla_force_host_platform_device_count=2")
     for (n, loop), out in outs.items():
         config = json.loads((out / "config.json").read_text())
         assert len(config["devices"]) == n and config["devices"][-1] == f"TFRT_CPU_{n - 1}"
