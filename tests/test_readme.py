@@ -3,6 +3,7 @@
 import csv
 import importlib.util
 import json
+import math
 import os
 import re
 
@@ -549,6 +550,35 @@ def test_the_avx2_machines_sentence_quotes_its_bench_file():
         round(t["methods"]["gp_pg"]["run_s"]["median"], 2),
         round(t["gp_methods_program"]["compile_s"], 1), round(own3, 1)]
     assert pr["warm_s"]["median"] > 30 and fit > 3 and t["numpy_gp_pg"]["ratio_jax_over_numpy"] >= 20
+
+
+def test_the_second_zen4_sentence_quotes_its_bench_file():
+    """The Status paragraph's figures of the last stop of 2026-12-03 equal its bench report,
+    and its split of the cold command adds up (in-process compile + compute, then the rest)."""
+    text = " ".join(_readme().split())
+    b = _results_json("bench_2026-12-03_zen4_second.json")
+    t, pr = b["train"], b["paper_run"]
+    m = re.search(r"bench_2026-12-03_zen4_second\.json`\): the cold run ([\d.]+) s, the warm one "
+                  r"([\d.]+) s, the fit ([\d.]+) s and the ratio ([\d.]+)× \(all missed\)\. In the "
+                  r"same report the fit, the compilation and the runs take ([\d.]+) s in one process: "
+                  r"([\d.]+) s compiling \(the fit, REINFORCE's program and the GP methods' one "
+                  r"program\) and ([\d.]+) s computing \(the fit and the four runs\)\. The ([\d.]+) s "
+                  r"left of the cold command .*? Computation and those alone take ([\d.]+) s", text)
+    assert m, "second Zen 4 sentence not found"
+    fit = t["hyperfit"]
+    shared = t["gp_methods_program"]
+    compile_s = fit["compile_s"] + t["methods"]["reinforce"]["compile_s"] + shared["compile_s"]
+    compute_s = fit["run_s"]["median"] + t["methods"]["reinforce"]["run_s"]["median"] + sum(
+        r["run_s"]["median"] for r in shared["methods"].values())
+    cold = pr["cold_s"]["median"]
+    rest = cold - t["in_process_total_s"]
+    assert math.isclose(compile_s + compute_s, t["in_process_total_s"], rel_tol=1e-9)
+    assert [float(x) for x in m.groups()] == [
+        round(cold, 1), round(pr["warm_s"]["median"], 1), round(fit["run_s"]["median"], 2),
+        round(t["numpy_gp_pg"]["ratio_jax_over_numpy"], 1), round(t["in_process_total_s"], 1),
+        round(compile_s, 1), round(compute_s, 1), round(rest, 1), round(compute_s + rest, 1)]
+    assert cold > 30 and fit["run_s"]["median"] > 3 and t["numpy_gp_pg"]["ratio_jax_over_numpy"] < 20
+    assert compute_s + rest >= 29.95  # the claim: computation and the rest alone reach 30 s
 
 
 def test_this_stops_benchmark_prose_quotes_bench_json():
