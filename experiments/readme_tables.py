@@ -162,6 +162,7 @@ SECOND_MACHINE = "bench_2026-12-02_second_machine.json"
 THIRD_MACHINE = "bench_2026-12-02_third_machine.json"
 ZEN3_MACHINE = "bench_2026-12-03_zen3.json"
 ZEN4_SECOND = "bench_2026-12-03_zen4_second.json"
+MACHINE_REPORTS = (FIRST_MACHINE, SECOND_MACHINE, THIRD_MACHINE, "bench.json", ZEN3_MACHINE, ZEN4_SECOND)
 MACHINE_LABELS = ("the first machine", "the second machine", "a third machine, padded GP buffers",
                   "the table above: the GP methods as one program", "an AMD Zen 3 (AVX2 only)",
                   "another AMD Zen 4, a later stop")
@@ -181,7 +182,7 @@ def bench_machines_table() -> str:
     update's padded buffers, `sparse_gp.padded_slots`), then `bench.json`, the table above, then
     the two of the later stops of 2026-12-03 (the library's code unchanged since `bench.json`'s,
     but for programs kept per process, which a single command does not reuse)."""
-    names = (FIRST_MACHINE, SECOND_MACHINE, THIRD_MACHINE, "bench.json", ZEN3_MACHINE, ZEN4_SECOND)
+    names = MACHINE_REPORTS
     reports = []
     for name in names:
         with open(os.path.join(RESULTS, name)) as f:
