@@ -23,6 +23,7 @@
   saying so (`pytest_collection_modifyitems` below).
 """
 
+import functools
 import os
 import subprocess
 import sys
@@ -53,12 +54,22 @@ LEVEL0_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expens
 FAST_COMPILE_XLA_FLAGS = f"{LEVEL0_XLA_FLAGS} --xla_cpu_use_fusion_emitters=false"
 
 
+@functools.cache
+def _fast_compile_flags() -> str:
+    """FAST_COMPILE_XLA_FLAGS if this jaxlib knows them (XLA aborts on an unknown flag, and a newer
+    jaxlib may drop the older emitters' switch), else LEVEL0_XLA_FLAGS; checked once per worker."""
+    env = dict(os.environ, XLA_FLAGS=FAST_COMPILE_XLA_FLAGS)
+    probe = subprocess.run([sys.executable, "-c", "import jax; jax.devices()"], env=env,
+                           capture_output=True, timeout=120)
+    return FAST_COMPILE_XLA_FLAGS if probe.returncode == 0 else LEVEL0_XLA_FLAGS
+
+
 def fast_compile_env(level0_only=False, **extra):
     """os.environ (and `extra`) with XLA_FLAGS for fast compilation: for the end-to-end tests of
     experiment scripts, notebooks and the command line only. The compilation cache keys on the
     flags, so programs compiled so are never loaded by a test that compiles with the defaults."""
     env = dict(os.environ, **extra)
-    flags = LEVEL0_XLA_FLAGS if level0_only else FAST_COMPILE_XLA_FLAGS
+    flags = LEVEL0_XLA_FLAGS if level0_only else _fast_compile_flags()
     env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {flags}".strip()
     return env
 
@@ -66,8 +77,9 @@ def fast_compile_env(level0_only=False, **extra):
 def run_script(args, *, fast_compile=True, timeout=600, **env):
     """`python args...` in the project root (an experiment script, or ``-m gpguided_jax.cli``),
     with `env` added to the environment; fails the test, with the end of its stderr, unless it
-    exits 0. `fast_compile`: True (`FAST_COMPILE_XLA_FLAGS`), "level0" (`LEVEL0_XLA_FLAGS`) or
-    False (XLA's defaults, as a user's run compiles). Returns the CompletedProcess."""
+    exits 0. `fast_compile`: True (`FAST_COMPILE_XLA_FLAGS` where jaxlib knows them), "level0"
+    (`LEVEL0_XLA_FLAGS`) or False (XLA's defaults, as a user's run compiles). Returns the
+    CompletedProcess."""
     if fast_compile:
         env = fast_compile_env(level0_only=fast_compile == "level0", **env)
     else:
