@@ -1,13 +1,11 @@
 """Baselines: brax PPO on the pendulum, the swing-up success criterion, the comparison script."""
 
-import csv
 import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import run_script
 
 from gpguided_jax import baselines, pendulum
 
@@ -122,26 +120,3 @@ def test_train_sac_tiny_budget_returns_finite_curve_and_success():
     # hanging down, 1.25 s episodes: nothing is upright for the last second
     np.testing.assert_array_equal(result.success_rate, np.zeros(2))
     assert jax.config.jax_enable_x64
-
-
-def test_compare_ppo_end_to_end(tmp_path):
-    # one seed and two of the methods: every run compiles its own program (PPO ~20 s on a 2-core
-    # CPU); the other methods go through the same code
-    run_script(["experiments/compare_ppo.py", "--preset", "tiny", "--seeds", "0", "--methods",
-                "reinforce", "guided_variance", "--num-updates", "2", "--ppo-multipliers", "1",
-                "--eval-episodes", "2", "--hold-time", "0.04", "--out", tmp_path])
-    assert (tmp_path / "compare_tiny.png").stat().st_size > 0
-    md = (tmp_path / "compare_tiny.md").read_text()
-    for name in ("reinforce", "guided_variance", "PPO", "success"):
-        assert name in md, name
-    assert "gp_pg" not in md and "guided_direction" not in md
-    with open(tmp_path / "compare_tiny.csv") as f:
-        rows = list(csv.DictReader(f))
-    assert [r["method"] for r in rows] == ["reinforce", "guided_variance", "PPO (80 steps)"]
-    assert (tmp_path / "success_tiny.csv").exists()
-    with np.load(tmp_path / "ppo_tiny.npz") as f:
-        budget = int(f["budgets"][0])
-        assert budget == 2 * 2 * 20  # num_updates x episodes_per_update x episode_length
-        assert f[f"curves_{budget}"].shape == (1, 2) and np.all(np.isfinite(f[f"curves_{budget}"]))
-    for r in rows:
-        assert np.isfinite(float(r["wall_s"])) and float(r["wall_s"]) > 0
