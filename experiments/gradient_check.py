@@ -10,10 +10,15 @@ max|hand - autodiff| / max|autodiff| against reverse-mode (jax.grad) and forward
 The Gibbs score is written relative to the selected candidate (both `log_prob` and the hand
 score), so it stays accurate relative to its own size even when pi_J -> 1.
 
-Usage: python experiments/gradient_check.py [--cases 1000] [--seed 0] [--out results/gradient_check.md]
+Writes the rows as JSON to --out (the documentation's gradient-check table is generated from
+docs/results/gradient_check.json) and prints them as a Markdown table.
+
+Usage: python experiments/gradient_check.py [--cases 1000] [--seed 0]
+                                            [--out docs/results/gradient_check.json]
 """
 
 import argparse
+import json
 import os
 
 import jax
@@ -222,18 +227,30 @@ def to_markdown(rows, num_cases):
     return "\n".join(lines) + "\n"
 
 
+def to_json(rows, num_cases, seed):
+    keys = ("policy", "equation", "controller", "max_vs_grad", "median_vs_grad", "max_vs_jacfwd")
+    return {
+        "cases": num_cases,
+        "seed": seed,
+        "dtype": "float64",
+        "jax": jax.__version__,
+        "rows": [dict(zip(keys, row)) for row in rows],
+    }
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=int, default=1000)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="results/gradient_check.md")
+    parser.add_argument("--out", default="docs/results/gradient_check.json")
     args = parser.parse_args()
-    table = to_markdown(run(args.cases, args.seed), args.cases)
-    print(table)
+    rows = run(args.cases, args.seed)
+    print(to_markdown(rows, args.cases))
     if os.path.dirname(args.out):
         os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out, "w") as f:
-        f.write(table)
+        json.dump(to_json(rows, args.cases, args.seed), f, indent=2)
+        f.write("\n")
 
 
 if __name__ == "__main__":
