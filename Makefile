@@ -1,8 +1,9 @@
 # Two commands for a fresh machine with only python3 and make:
 #   make run    the main job: the paper's Fig. 5 reproduction (4 methods x 100 seeds, float64)
 #   make test   the test suite
-# make results regenerates everything the README's result tables are made from (docs/results/).
-# Both create the virtual environment in .venv on first use from the pinned lock file.
+# make results regenerates the result files of the documentation's tables (docs/results/);
+# make docs builds the documentation site into site/.
+# Every target creates the virtual environment in .venv on first use from the pinned lock file.
 
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -13,7 +14,7 @@ SEEDS ?= 100
 SEED_START ?= 1000
 CONSISTENCY_SEEDS := $(shell seq $(SEED_START) $$(($(SEED_START) + 9)))
 
-.PHONY: run results figures swingup demo test lint bench clean-venv
+.PHONY: run results figures swingup demo test lint bench docs clean-venv
 
 $(STAMP): pyproject.toml requirements.lock
 	python3 -m venv $(VENV)
@@ -25,8 +26,8 @@ $(STAMP): pyproject.toml requirements.lock
 run: $(STAMP)
 	$(VENV)/bin/gpguided reproduce --preset paper --seeds $(SEEDS) --seed-start $(SEED_START) --out $(OUT)/paper
 
-# The README's Fig. 5, failure and consistency tables: both dtypes on the reported seeds (never
-# used for tuning), the batch-vs-alone and float32-vs-float64 comparison, then the README tables.
+# The Fig. 5, failure and consistency tables: both dtypes on the reported seeds (never used for
+# tuning), the batch-vs-alone and float32-vs-float64 comparison, then the documentation's tables.
 # It starts afresh: a checkpoint or kernels.npz left by an earlier run would be resumed, whatever
 # code wrote it (the checkpoint's digest covers the config and seeds, not the code).
 results: $(STAMP)
@@ -34,9 +35,9 @@ results: $(STAMP)
 	$(VENV)/bin/gpguided reproduce --preset paper --seeds $(SEEDS) --seed-start $(SEED_START) --dtype float64 --out docs/results/paper_float64
 	$(VENV)/bin/gpguided reproduce --preset paper --seeds $(SEEDS) --seed-start $(SEED_START) --dtype float32 --out docs/results/paper_float32
 	$(PY) experiments/consistency.py --seeds $(CONSISTENCY_SEEDS) --f64 docs/results/paper_float64 --f32 docs/results/paper_float32 --out docs/results/consistency
-	$(PY) experiments/readme_tables.py --write
+	$(PY) experiments/docs_tables.py --write
 
-# Fig. 2/4, coverage and the two exploratory sweeps shown in the README (docs/figures/).
+# Figs. 1, 2 and 4, coverage, the two exploratory sweeps (docs/figures/) and the gradient check.
 FIGTMP := results/figures-tmp
 figures: $(STAMP)
 	$(PY) experiments/fig2_fig4_coverage.py --preset paper --seeds 5 --seed-start 1000 --out $(FIGTMP)/fig24
@@ -48,8 +49,10 @@ figures: $(STAMP)
 	cp $(FIGTMP)/beta/sweep.csv docs/figures/sweep_inverse_temperature.csv
 	cp $(FIGTMP)/beta/sweep_inverse_temperature.png docs/figures/
 	$(PY) experiments/fig1_bv_composition.py --out docs/figures
+	$(PY) experiments/gradient_check.py --out docs/results/gradient_check.json
+	$(PY) experiments/docs_tables.py --write
 
-# The swing-up study (issue 11): tuning on seeds 100-101, then seeds 1000-1009 against PPO and SAC.
+# The swing-up study: tuning on seeds 100-101, then seeds 1000-1009 against PPO and SAC.
 # It starts afresh, as `results` does (a held-out checkpoint would be resumed, and its wall time lost).
 swingup: $(STAMP)
 	rm -f docs/results/swingup/methods/checkpoint_* docs/results/swingup/methods/kernels.npz
@@ -58,7 +61,7 @@ swingup: $(STAMP)
 	$(PY) experiments/swingup_study.py gpfig
 	$(PY) experiments/swingup_diagnostics.py warm sac
 	$(PY) experiments/swingup_diagnostics.py warm --warm-lr 0.003
-	$(PY) experiments/readme_tables.py --write
+	$(PY) experiments/docs_tables.py --write
 
 demo: $(STAMP)
 	$(VENV)/bin/gpguided demo --out $(OUT)/demo
@@ -71,7 +74,11 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(VENV)/bin/gpguided bench --out docs/results/bench.json
-	$(PY) experiments/readme_tables.py --write
+	$(PY) experiments/docs_tables.py --write
+
+# The documentation site (mkdocs.yml, docs/), warnings as errors, into site/.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site
 
 clean-venv:
 	rm -rf $(VENV)

@@ -56,7 +56,7 @@ def test_gpguided_bench_quick_writes_the_report_the_readme_table_is_made_from(tm
     check_stats(report["paper_run"]["warm_s"], runs=1)
 
     spec = importlib.util.spec_from_file_location(
-        "readme_tables", os.path.join(ROOT, "experiments", "readme_tables.py"))
+        "docs_tables", os.path.join(ROOT, "experiments", "docs_tables.py"))
     tables = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tables)
     tables.RESULTS = str(tmp_path)

@@ -1,0 +1,380 @@
+"""The documentation's result tables, generated from the committed result files.
+
+Every table in README.md and docs/*.md between a pair of markers
+
+    <!-- generated: NAME -->
+    ...
+    <!-- end: NAME -->
+
+is produced by `TABLES[NAME]()` from files under docs/results/ and docs/figures/. `--write`
+rewrites the blocks in place; `--check` (and tests/test_docs.py) fails if any block differs from
+what its files give, so a number in a documentation table is always the number in the file it
+names. A block may appear in several documents (the Fig. 5 table is in the README and on the
+results page).
+
+Usage:
+  python experiments/docs_tables.py --write     # after regenerating result files (make results)
+  python experiments/docs_tables.py --check
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import glob
+import json
+import os
+import re
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+RESULTS = os.path.join(ROOT, "docs", "results")
+FIGURES = os.path.join(ROOT, "docs", "figures")
+FAILURE_CAUSES = ("nonfinite_grad", "gp_guard", "nan_record", "std_at_bound", "below_zero_torque")
+
+
+def documents() -> list[str]:
+    """README.md and every Markdown page of the documentation site (docs/*.md)."""
+    return [os.path.join(ROOT, "README.md")] + sorted(glob.glob(os.path.join(ROOT, "docs", "*.md")))
+
+
+def _rows(path: str, base: str | None = None) -> list[dict]:
+    with open(os.path.join(base or RESULTS, path), newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _source(*paths: str, folder: str = "docs/results") -> str:
+    return "Source: " + ", ".join(f"`{folder}/{p}`" for p in paths) + "."
+
+
+def fig5_table(run: str = "paper_float64") -> str:
+    rows = _rows(f"{run}/summary.csv")
+    lines = ["| method | final, IQM | 95% CI (stratified bootstrap) | final, mean | 95% CI (t) | "
+             "first 10% of updates | updates to 90% |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        f = {k: float(v) for k, v in r.items() if k != "method"}
+        lines.append(
+            f"| {r['method']} | {f['final_iqm']:.3f} | [{f['iqm_ci95_low']:.3f}, {f['iqm_ci95_high']:.3f}] | "
+            f"{f['final_mean']:.3f} | [{f['ci95_low']:.3f}, {f['ci95_high']:.3f}] | "
+            f"{f['initial_mean']:.3f} | {f['updates_to_90pct']:.0f} |")
+    seeds = int(rows[0]["seeds"])
+    zero = float(rows[0]["zero_torque_reward"])
+    lines.append("")
+    lines.append(f"{seeds} seeds per method; zero-torque policy: {zero:.3f} per step. "
+                 + _source(f"{run}/summary.csv"))
+    return "\n".join(lines)
+
+
+def improvement_table(run: str = "paper_float64") -> str:
+    rows = _rows(f"{run}/comparisons.csv")
+    lines = ["| X | Y | P(X > Y) | 95% CI (bootstrap) |", "|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['x']} | {r['y']} | {float(r['p_improvement']):.2f} | "
+                     f"[{float(r['ci95_low']):.2f}, {float(r['ci95_high']):.2f}] |")
+    lines.append("")
+    lines.append(_source(f"{run}/comparisons.csv"))
+    return "\n".join(lines)
+
+
+def failures_table(runs=("paper_float64", "paper_float32")) -> str:
+    header = ("| method | dtype | seeds | non-finite gradient | GP guard fired | NaN in a record | "
+              "σ at a clip bound | final below zero-torque | failing seeds (any) |")
+    lines = [header, "|---|---|---|---|---|---|---|---|---|"]
+    by_run = {run: _rows(f"{run}/summary.csv") for run in runs}
+    methods = [r["method"] for r in by_run[runs[0]]]
+    for m in methods:
+        for run in runs:
+            r = next(x for x in by_run[run] if x["method"] == m)
+            dtype = run.rsplit("_", 1)[-1]
+            cells = " | ".join(r[f"fail_{c}"] for c in FAILURE_CAUSES)
+            lines.append(f"| {m} | {dtype} | {r['seeds']} | {cells} | {r['failing_seeds']} |")
+    lines.append("")
+    lines.append(_source(*(f"{run}/summary.csv" for run in runs)))
+    return "\n".join(lines)
+
+
+def consistency_table() -> str:
+    with open(os.path.join(RESULTS, "consistency", "consistency.json")) as f:
+        c = json.load(f)
+    lines = ["| method | seeds | batch vs alone (CPU default, map): max \\|Δ\\| reward/step | "
+             "batch vs alone (one vmapped batch): max \\|Δ\\| reward/step | "
+             "batch vs alone (vmap): max \\|Δ\\| final | "
+             "float32 vs float64: median \\|Δ\\| final | max \\|Δ\\| final | IQM float64 [95% CI] | "
+             "IQM float32 [95% CI] |", "|---|---|---|---|---|---|---|---|---|"]
+    for m, b in c["batch_vs_alone"].items():
+        d = c["f32_vs_f64"][m]
+        v = c["batch_vs_alone_vmap"][m]
+        lines.append(
+            f"| {m} | {b['seeds']} / {d['seeds']} | {b['max_abs_curve_diff']:.1e} | "
+            f"{v['max_abs_curve_diff']:.1e} | "
+            f"{v['max_abs_final_diff']:.1e} | {d['median_abs_final_diff']:.4f} | "
+            f"{d['max_abs_final_diff']:.4f} | {d['iqm_f64']:.3f} [{d['iqm_ci_f64'][0]:.3f}, "
+            f"{d['iqm_ci_f64'][1]:.3f}] | {d['iqm_f32']:.3f} [{d['iqm_ci_f32'][0]:.3f}, "
+            f"{d['iqm_ci_f32'][1]:.3f}] |")
+    lines.append("")
+    lines.append(_source("consistency/consistency.json"))
+    return "\n".join(lines)
+
+
+def coverage_table() -> str:
+    """Figs. 2 and 4's state coverage: share of a (phi, omega) grid visited by the roll-outs."""
+    with open(os.path.join(FIGURES, "coverage.json")) as f:
+        c = json.load(f)
+    g = c["grid"]
+    lines = [f"| method | coverage | 95% CI | cells visited (of {c['cells_total']}) |",
+             "|---|---|---|---|"]
+    for r in c["summary"]:
+        lines.append(f"| {r['method']} | {100 * r['coverage_mean']:.2f}% | "
+                     f"[{100 * r['ci95_low']:.2f}, {100 * r['ci95_high']:.2f}]% | {r['cells_mean']:.1f} |")
+    lines.append("")
+    lines.append(f"Grid {g['num_angle_bins']} × {g['num_velocity_bins']} over φ ∈ [0, 2π), "
+                 f"ω ∈ [−{g['max_velocity']:g}, {g['max_velocity']:g}] rad/s; mean and 95% CI over "
+                 f"{len(c['seeds'])} seeds ({c['seeds'][0]}–{c['seeds'][-1]}), "
+                 f"{c['eval_episodes_per_checkpoint']} roll-outs after every "
+                 f"{c['checkpoints_at_updates'][0]} updates. " + _source("coverage.json", folder="docs/figures"))
+    return "\n".join(lines)
+
+
+def fig1_table() -> str:
+    """Fig. 1: mean share of basis vectors added under the latest policy, per age penalty."""
+    rows = _rows("fig1_bv_composition.csv", FIGURES)
+    columns = [k for k in rows[0] if k != "improvement"]
+    lines = ["| λ | " + " | ".join(k.split("=", 1)[1] for k in columns) + " |",
+             "|---" * (len(columns) + 1) + "|"]
+    lines.append(f"| mean share over the {len(rows)} improvements | " + " | ".join(
+        f"{sum(float(r[k]) for r in rows) / len(rows):.1f}%" for k in columns) + " |")
+    lines.append("")
+    lines.append(_source("fig1_bv_composition.csv", folder="docs/figures"))
+    return "\n".join(lines)
+
+
+def _sweep_table(name: str, label: str) -> str:
+    rows = _rows(name, FIGURES)
+    param = next(iter(rows[0]))
+    lines = [f"| {label} | final (mean) | 95% CI (t) | updates to 90% | share of basis vectors from the "
+             "latest update |", "|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {float(r[param]):g} | {float(r['final_mean']):.3f} | "
+                     f"[{float(r['ci95_low']):.3f}, {float(r['ci95_high']):.3f}] | "
+                     f"{float(r['updates_to_90pct']):.0f} | {100 * float(r['fresh_bv_share_mean']):.1f}% |")
+    lines.append("")
+    lines.append(f"{rows[0]['seeds']} seeds per value. " + _source(name, folder="docs/figures"))
+    return "\n".join(lines)
+
+
+def sweep_lambda_table() -> str:
+    return _sweep_table("sweep_age_penalty.csv", "λ")
+
+
+def sweep_beta_table() -> str:
+    return _sweep_table("sweep_inverse_temperature.csv", "β")
+
+
+def gradient_check_table() -> str:
+    """`experiments/gradient_check.py`: hand-derived scores against jax.grad and jax.jacfwd."""
+    with open(os.path.join(RESULTS, "gradient_check.json")) as f:
+        g = json.load(f)
+    lines = ["| policy | equation | controller | max vs jax.grad | median vs jax.grad | max vs jax.jacfwd |",
+             "|---|---|---|---|---|---|"]
+    for r in g["rows"]:
+        lines.append(f"| {r['policy']} | {r['equation']} | {r['controller']} | {r['max_vs_grad']:.1e} | "
+                     f"{r['median_vs_grad']:.1e} | {r['max_vs_jacfwd']:.1e} |")
+    lines.append("")
+    lines.append(f"Relative difference max\\|hand − autodiff\\| / max\\|autodiff\\| over {g['cases']} "
+                 f"random cases per row, {g['dtype']}. " + _source("gradient_check.json"))
+    return "\n".join(lines)
+
+
+def bench_table() -> str:
+    """`gpguided bench`'s report (docs/results/bench.json) as one table."""
+    with open(os.path.join(RESULTS, "bench.json")) as f:
+        b = json.load(f)
+    t, pr = b["train"], b["paper_run"]
+    lines = [f"| figure | median [min, max] of {b['repeats']} runs |", "|---|---|"]
+
+    def cell(x, unit="s", digits=1):
+        return f"{x['median']:.{digits}f} {unit} [{x['min']:.{digits}f}, {x['max']:.{digits}f}]"
+
+    lines.append(f"| whole `gpguided reproduce --preset paper`, {pr['seeds']} seeds, empty compile "
+                 f"cache | {cell(pr['cold_s'])} |")
+    lines.append(f"| the same, persistent compile cache warm | {cell(pr['warm_s'])} |")
+    for key in ("hyperfit", "hyperfit_alternative"):
+        if key in t:
+            h = t[key]
+            what = " (the default)" if key == "hyperfit" else " (the option)"
+            lines.append(f"| hyperparameter fit, {h.get('optimizer', 'lbfgs')} "
+                         f"{h.get('steps', 15)} steps{what}, {t['seeds']} seeds (run; compile "
+                         f"{h['compile_s']:.1f} s) | {cell(h['run_s'], digits=2)} |")
+    for m, r in t["methods"].items():
+        lines.append(f"| {m}, its own program: {t['seeds']} seeds x all updates (run; compile "
+                     f"{r['compile_s']:.1f} s) | {cell(r['run_s'], digits=2)} |")
+    if "gp_methods_program" in t:
+        g = t["gp_methods_program"]
+        lines.append(f"| the three GP methods as one program, as `gpguided reproduce` runs them "
+                     f"(run; compile {g['compile_s']:.1f} s once for all three) | "
+                     + " / ".join(cell(r["run_s"], digits=2) for r in g["methods"].values())
+                     + " (" + " / ".join(g["methods"]) + ") |")
+    if "in_process_total_s" in t:
+        lines.append(f"| the fit, compilation and runs of all four methods in one process, as "
+                     f"`gpguided reproduce` compiles them | {t['in_process_total_s']:.1f} s |")
+    n = t["numpy_gp_pg"]
+    runs = n["seconds_per_update"]["runs"] if "seconds_per_update" in n else 1
+    of_runs = f"the median of {runs} runs of" if runs > 1 else "one run of"
+    lines.append(f"| gp_pg: per-seed NumPy loop, extrapolated from {of_runs} "
+                 f"{n['measured_updates']} updates | {n['extrapolated_run_s']:.1f} s |")
+    lines.append(f"| **gp_pg: JAX over NumPy** | **{n['ratio_jax_over_numpy']:.1f}x** |")
+    g = b["gp"]
+    lines.append(f"| sparse GP update alone (M = {g['capacity']}, {g['seeds']} seeds, as training runs "
+                 "them): "
+                 f"JAX / NumPy updates per second | {g['jax_updates_per_s']:,.0f} / "
+                 f"{g['numpy_updates_per_s']:,.0f} = {g['ratio']:.1f}x |")
+    e = sorted(b["env"].items(), key=lambda kv: int(kv[0].removeprefix("episodes_")))
+    lines.append("| pendulum steps per second, "
+                 + " / ".join(k.removeprefix("episodes_") for k, _ in e) + " vmapped episodes | "
+                 + " / ".join(f"{v['steps_per_s'] / 1e6:.2f} M" for _, v in e) + " |")
+    lines.append("")
+    lines.append(f"{b['cpu_count']} CPU cores, jax {b['jax']}, {b['dtype']}. " + _source("bench.json"))
+    return "\n".join(lines)
+
+
+SCALING_RUNS = ("scaling", "scaling_vmap")  # the CPU default; one vmapped batch on one device
+
+
+def scaling_table() -> str:
+    """One row per (run, seeds): the CPU default (`--seed-loop map`, one device per core) and the
+    one-batch path an accelerator runs (`vmap`, one device), whose memory gives the 80 GB estimate."""
+    runs = []
+    for name in SCALING_RUNS:
+        path = os.path.join(RESULTS, name, "scaling.json")
+        if os.path.exists(path):
+            with open(path) as f:
+                runs.append((name, json.load(f)))
+    methods = list(runs[0][1]["results"][0]["methods"])
+    lines = ["| seed loop | seeds | whole paper run [s] | "
+             + " | ".join(f"{m} seeds·updates/s" for m in methods)
+             + " | peak RSS [GiB] | XLA memory, largest program [MiB] | updates timed |",
+             "|---|---|---|" + "---|" * len(methods) + "---|---|---|"]
+    for _, sc in runs:
+        for r in sc["results"]:
+            timed = min(m.get("updates_timed", 400) for m in r["methods"].values())
+            loop = f"{r.get('seed_loop', 'vmap')}, {r.get('devices', 1)} device(s)"
+            lines.append(f"| {loop} | {r['seeds']} | {r['whole_paper_run_s']:.0f} | "
+                         + " | ".join(f"{r['methods'][m]['seed_updates_per_s']:.0f}" for m in methods)
+                         + f" | {r['peak_rss_bytes'] / 2**30:.2f} | {r['device_bytes_max'] / 2**20:.0f} | "
+                         + ("all 400" if timed >= 400 else f"{timed} (extrapolated)") + " |")
+    batch = dict(runs).get("scaling_vmap", runs[0][1])
+    lines.append("")
+    lines.append(f"Device memory per seed when the seeds run as one batch (slope of XLA's memory "
+                 f"analysis, vmap): {batch['device_bytes_per_seed'] / 2**20:.2f} MiB, so about "
+                 f"{batch['seeds_in_80_GB']:,} seeds fit in 80 GB (an estimate; no GPU was measured). "
+                 + _source(*(f"{name}/scaling.json" for name, _ in runs)))
+    return "\n".join(lines)
+
+
+def swingup_table() -> str:
+    with open(os.path.join(RESULTS, "swingup", "heldout.md")) as f:
+        return f.read().rstrip("\n") + "\n\n" + _source("swingup/heldout.md")
+
+
+def swingup_warm_table() -> str:
+    """The swing-up diagnostics: started from the fitted controller, does each method keep it?"""
+    with open(os.path.join(RESULTS, "swingup", "diagnostics.json")) as f:
+        d = json.load(f)
+    low, tuned = d["warm_start_lr_0.003"], d["warm_start"]
+    methods = [m for m in low if isinstance(low[m], dict)]
+    lines = ["| method | success, first 10 updates (lr 0.003) | success, last 10 updates (lr 0.003) | "
+             "reward/step, last 10 updates (lr 0.003) | success, last 10 updates (tuned lr) |",
+             "|---|---|---|---|---|"]
+    for m in methods:
+        a, b = low[m], tuned[m]
+        lines.append(f"| {m} | {a['first_10_updates_success']:.2f} | {a['final_success']:.2f} | "
+                     f"{a['final_reward']:.2f} | {b['final_success']:.2f} |")
+    seeds = d["seeds"]
+    lines.append("")
+    lines.append(f"Deterministic success, mean over seeds {seeds[0]}–{seeds[-1]}, each started from the "
+                 "RBF controller fitted to the energy-pumping controller. "
+                 + _source("swingup/diagnostics.json"))
+    return "\n".join(lines)
+
+
+def swingup_sac_table() -> str:
+    """The swing-up diagnostics: SAC with a longer horizon, outside the tuning grid."""
+    with open(os.path.join(RESULTS, "swingup", "diagnostics.json")) as f:
+        d = json.load(f)["sac_long_horizon"]
+    lines = ["| seed | best success [environment steps] | final success |", "|---|---|---|"]
+    for r in d["runs"]:
+        best = max(range(len(r["success"])), key=lambda i: r["success"][i])
+        lines.append(f"| {r['seed']} | {r['success'][best]:.2f} [{r['env_steps'][best] / 1e3:.0f}k] | "
+                     f"{r['success'][-1]:.2f} |")
+    s = d["settings"]
+    lines.append("")
+    lines.append(f"brax SAC, discount {s['discounting']:g}, {s['grad_updates_per_step']} gradient steps per "
+                 f"environment step, learning rate {s['learning_rate']:g}, reward scale "
+                 f"{s['reward_scaling']:g}; deterministic success. " + _source("swingup/diagnostics.json"))
+    return "\n".join(lines)
+
+
+TABLES = {
+    "fig5": fig5_table,
+    "improvement": improvement_table,
+    "failures": failures_table,
+    "consistency": consistency_table,
+    "coverage": coverage_table,
+    "fig1": fig1_table,
+    "sweep_lambda": sweep_lambda_table,
+    "sweep_beta": sweep_beta_table,
+    "gradient_check": gradient_check_table,
+    "bench": bench_table,
+    "scaling": scaling_table,
+    "swingup": swingup_table,
+    "swingup_warm": swingup_warm_table,
+    "swingup_sac": swingup_sac_table,
+}
+BLOCK = re.compile(r"(<!-- generated: (\w+) -->\n)(.*?)(<!-- end: \2 -->)", re.S)
+
+
+def render(text: str) -> str:
+    """`text` with every generated block replaced by what its files give."""
+    def sub(m):
+        name = m.group(2)
+        if name not in TABLES:
+            raise KeyError(f"block {name!r} has no generator; known: {sorted(TABLES)}")
+        return m.group(1) + TABLES[name]() + "\n" + m.group(4)
+
+    return BLOCK.sub(sub, text)
+
+
+def blocks(text: str) -> dict[str, str]:
+    return {m.group(2): m.group(3) for m in BLOCK.finditer(text)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    mode = ap.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--write", action="store_true", help="rewrite the blocks in README.md and docs/*.md")
+    mode.add_argument("--check", action="store_true", help="exit 1 if a block is stale")
+    args = ap.parse_args(argv)
+    stale, count = [], 0
+    for path in documents():
+        with open(path) as f:
+            text = f.read()
+        new = render(text)
+        count += len(blocks(text))
+        rel = os.path.relpath(path, ROOT)
+        if args.write and new != text:
+            with open(path, "w") as f:
+                f.write(new)
+            print(f"rewrote the blocks of {rel}")
+        stale += [f"{rel}:{k}" for k, v in blocks(new).items() if blocks(text).get(k) != v]
+    if args.write:
+        print(f"{count} blocks in {len(documents())} documents")
+        return 0
+    if stale:
+        print(f"stale blocks: {stale}; run python experiments/docs_tables.py --write")
+        return 1
+    print(f"{count} blocks match their files")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

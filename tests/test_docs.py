@@ -1,0 +1,143 @@
+"""The documentation: README.md and the site's pages under docs/.
+
+Every measured number in them sits in a generated block that equals what its result file gives;
+the README's quick start runs as printed; every relative link and image points to a file; the
+README stays short; no page reads like a lab notebook. (The site itself is built by `make docs`,
+not here.)
+"""
+
+import csv
+import glob
+import importlib.util
+import os
+import re
+import subprocess
+import sys
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+spec = importlib.util.spec_from_file_location(
+    "docs_tables", os.path.join(ROOT, "experiments", "docs_tables.py"))
+docs_tables = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(docs_tables)
+
+README = os.path.join(ROOT, "README.md")
+PAGES = sorted(glob.glob(os.path.join(ROOT, "docs", "*.md")))
+DOCUMENTS = [README] + PAGES
+DIARY = re.compile(r"\b(this|last|next|earlier|later|previous) stop\b|\bstop \d+\b|\bsession \d+\b"
+                   r"|\bscratch\b|\bissue \d+\b|SPEC §", re.I)
+# The sections of docs/design.md that the code cites as docs/design.md#<anchor>.
+DESIGN_ANCHORS = ("pendulum", "gp-model", "sparse-gp", "policies", "estimators", "algorithm-1",
+                  "presets", "deviations", "decisions")
+
+
+def _read(path):
+    with open(path, encoding="utf-8") as f:
+        return f.read()
+
+
+def _rel(path):
+    return os.path.relpath(path, ROOT)
+
+
+def test_the_documents_are_the_ones_the_generator_rewrites():
+    assert docs_tables.documents() == DOCUMENTS
+
+
+@pytest.mark.parametrize("path", DOCUMENTS, ids=_rel)
+def test_every_generated_block_matches_its_files(path):
+    text = _read(path)
+    found = docs_tables.blocks(text)
+    for name, body in docs_tables.blocks(docs_tables.render(text)).items():
+        assert found[name] == body, (f"{_rel(path)}: block {name!r} is stale: run "
+                                     "python experiments/docs_tables.py --write")
+
+
+def test_every_generator_has_a_block():
+    used = set()
+    for path in DOCUMENTS:
+        used |= set(docs_tables.blocks(_read(path)))
+    assert used == set(docs_tables.TABLES), sorted(used ^ set(docs_tables.TABLES))
+
+
+@pytest.mark.parametrize("path", [README, os.path.join(ROOT, "docs", "results.md")], ids=_rel)
+def test_fig5_numbers_equal_the_summary_file_independently(path):
+    """Parse the Fig. 5 rows back into numbers and compare them with summary.csv at the precision
+    shown (a check that does not reuse the table generator's formatting code)."""
+    body = docs_tables.blocks(_read(path))["fig5"]
+    rows = [line for line in body.splitlines() if line.startswith("| ") and not line.startswith("| method")]
+    with open(os.path.join(ROOT, "docs", "results", "paper_float64", "summary.csv")) as f:
+        summary = {r["method"]: r for r in csv.DictReader(f)}
+    assert len(rows) == len(summary) == 4
+    keys = ["final_iqm", "iqm_ci95_low", "iqm_ci95_high", "final_mean", "ci95_low", "ci95_high",
+            "initial_mean", "updates_to_90pct"]
+    for line in rows:
+        method = line.split("|")[1].strip()
+        numbers = [float(x) for x in re.findall(r"-?\d+\.?\d*", line.split("|", 2)[2])]
+        assert len(numbers) == len(keys), line
+        for key, shown in zip(keys, numbers):
+            digits = 0 if key == "updates_to_90pct" else 3
+            assert shown == round(float(summary[method][key]), digits), (method, key, shown)
+
+
+def _quick_start():
+    text = _read(README)
+    section = text.split("## Quick start", 1)[1]
+    match = re.search(r"```python\n(.*?)```", section, re.S)
+    assert match, "no ```python block after the Quick start heading"
+    return match.group(1)
+
+
+def test_the_readme_quick_start_runs_as_printed(tmp_path):
+    """Executed exactly as printed, in a fresh process with the repository on the path."""
+    script = tmp_path / "quick_start.py"
+    script.write_text(_quick_start())
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.pop("JAX_ENABLE_X64", None)
+    proc = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = proc.stdout.splitlines()
+    assert len(lines) == 2, proc.stdout
+    rewards = re.findall(r"-?\d+\.\d+", lines[0])
+    assert lines[0].startswith("reward per step, first update:") and len(rewards) == 4, lines[0]
+    m = re.fullmatch(r"(\d+) basis vectors; at x_0 = 0\.5: mean (-?[\d.]+) \(sin 0\.5 = 0\.479\), "
+                     r"variance ([\d.]+)", lines[1])
+    assert m, lines[1]
+    assert 1 <= int(m.group(1)) <= 20
+    assert abs(float(m.group(2)) - 0.479) < 0.1 and float(m.group(3)) < 0.1  # the GP fits sin
+
+
+_LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
+_FENCE = re.compile(r"^```.*?^```", re.S | re.M)
+
+
+@pytest.mark.parametrize("path", DOCUMENTS, ids=_rel)
+def test_every_relative_link_and_image_points_to_a_file(path):
+    text = _FENCE.sub("", _read(path))
+    text = re.sub(r"`[^`\n]*`", "", text)
+    targets = _LINK.findall(text)
+    missing = []
+    for target in targets:
+        if re.match(r"[a-z][a-z0-9+.-]*:", target) or target.startswith("#"):
+            continue  # a URL, or an anchor on the same page
+        file = target.split("#", 1)[0]
+        if not os.path.exists(os.path.join(os.path.dirname(path), file)):
+            missing.append(target)
+    assert not missing, f"{_rel(path)}: {missing}"
+
+
+def test_the_readme_is_short():
+    assert len(_read(README).splitlines()) <= 300
+
+
+@pytest.mark.parametrize("path", DOCUMENTS, ids=_rel)
+def test_no_lab_notebook_words(path):
+    found = [m.group(0) for m in DIARY.finditer(_read(path))]
+    assert not found, f"{_rel(path)}: {found}"
+
+
+def test_the_design_page_has_the_anchors_the_code_cites():
+    headings = re.findall(r"^## .*\{#([\w-]+)\}\s*$", _read(os.path.join(ROOT, "docs", "design.md")), re.M)
+    assert list(DESIGN_ANCHORS) == headings
