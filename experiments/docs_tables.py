@@ -131,7 +131,8 @@ def coverage_table() -> str:
                  f"ω ∈ [−{g['max_velocity']:g}, {g['max_velocity']:g}] rad/s; mean and 95% CI over "
                  f"{len(c['seeds'])} seeds ({c['seeds'][0]}–{c['seeds'][-1]}), "
                  f"{c['eval_episodes_per_checkpoint']} roll-outs after every "
-                 f"{c['checkpoints_at_updates'][0]} updates. " + _source("coverage.json", folder="docs/figures"))
+                 f"{c['checkpoints_at_updates'][0]} updates. "
+                 + _source("coverage.json", folder="docs/figures"))
     return "\n".join(lines)
 
 
@@ -266,7 +267,7 @@ def scaling_table() -> str:
     lines.append("")
     lines.append(f"Device memory per seed when the seeds run as one batch (slope of XLA's memory "
                  f"analysis, vmap): {batch['device_bytes_per_seed'] / 2**20:.2f} MiB, so about "
-                 f"{batch['seeds_in_80_GB']:,} seeds fit in 80 GB (an estimate; no GPU was measured). "
+                 f"{batch['seeds_in_80_GB']:,} seeds fit in 80 GB (an estimate, not measured on a GPU). "
                  + _source(*(f"{name}/scaling.json" for name, _ in runs)))
     return "\n".join(lines)
 
