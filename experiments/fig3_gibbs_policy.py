@@ -43,7 +43,8 @@ def two_peaked_q(a):
 
 
 def build_gp(state, num_points=25):
-    """An exact GP over actions at `state` (every basis vector at this state), SPEC §2 form."""
+    """An exact GP over actions at `state` (every basis vector at this state), in the sparse GP's
+    state form (docs/design.md#sparse-gp)."""
     actions = np.linspace(-ACTION_RANGE, ACTION_RANGE, num_points)
     xs = jax.vmap(kernels.state_action_features, (None, 0))(state, jnp.asarray(actions))
     hyper = kernels.make_kernel_params(jnp.array([1.0, 1.0, 1.0, 0.7]), 10.0, 0.01)

@@ -232,4 +232,4 @@ plt.show()
 # Guided variance explores with σ_GP(s), which shrinks as the GP fills in around the visited
 # states; the Gibbs policy's spread is set by the candidate variance and β. Fixed noise keeps its
 # learnable σ. Whether guided exploration beats fixed noise on reward needs all 400 updates and
-# 10 seeds: `gpguided reproduce` (README, Fig. 5).
+# 10 seeds: `gpguided reproduce` (Fig. 5, docs/results.md).

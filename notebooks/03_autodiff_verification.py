@@ -20,8 +20,9 @@
 # for the three policies, and shows that eq. 17 *as printed* (without the factor ½ on the variance
 # term) disagrees with autodiff, while the corrected form agrees to rounding error.
 #
-# Conventions (SPEC §3): σ²(x) = k** + kᵀCk with C negative semi-definite, held constant in the
-# gradient; σ²_GP(s) = max(λ_v·σ²(s, c(s)), floor); the Gibbs candidates and Q̃ are held constant.
+# Conventions (docs/design.md#policies): σ²(x) = k** + kᵀCk with C negative semi-definite, held
+# constant in the gradient; σ²_GP(s) = max(λ_v·σ²(s, c(s)), floor); the Gibbs candidates and Q̃
+# are held constant.
 
 # %%
 import os
