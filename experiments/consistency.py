@@ -3,7 +3,7 @@
 
 (1) Batch vs alone: every method on the paper preset for seeds S, once together and once per seed
     alone (a batch of one), float64, for each way a device can run its seeds
-    (`reproduce.per_seed_program`): 'map' (one seed after another, the CPU default: the seed's
+    (`sharding.per_seed_program`): 'map' (one seed after another, the CPU default: the seed's
     program is the same in both, so the results should agree bit for bit) and 'vmap' (one batch,
     what an accelerator runs: XLA compiles a different program for each batch size, so results
     can differ in the last bits, and training can amplify that). Reported per method: the
@@ -34,11 +34,11 @@ import jax
 import numpy as np
 
 import gpguided_jax
+from gpguided_jax import checkpoints, sharding, summaries
 from gpguided_jax import config as config_lib
-from gpguided_jax import reproduce
 from gpguided_jax import stats as stats_lib
 from gpguided_jax import train as train_lib
-from gpguided_jax.cli import single_threaded_lapack
+from gpguided_jax.runtime import single_threaded_lapack
 
 gpguided_jax.enable_x64()
 
@@ -47,12 +47,12 @@ def batch_vs_alone(method: str, seeds: list[int], preset: str, overrides: dict,
                    seed_loop: str = "map") -> dict:
     cfg = config_lib.preset(preset, method=method, **overrides)
     train = train_lib.make_train(cfg)
-    mesh = reproduce.make_mesh(1)
-    fit = reproduce.per_seed_program(train.fit_kernel_for_seed, mesh, seed_loop)
-    run = reproduce.per_seed_program(
+    mesh = sharding.make_mesh(1)
+    fit = sharding.per_seed_program(train.fit_kernel_for_seed, mesh, seed_loop)
+    run = sharding.per_seed_program(
         lambda k, p: train.run_chunk(train.init(k, cfg, p), cfg)[1].mean_reward, mesh, seed_loop)
-    run_plain = reproduce.per_seed_program(lambda k: train(k)[1].mean_reward, mesh, seed_loop)
-    keys = reproduce.seed_keys(seeds)
+    run_plain = sharding.per_seed_program(lambda k: train(k)[1].mean_reward, mesh, seed_loop)
+    keys = sharding.seed_keys(seeds)
     t0 = time.perf_counter()
     if cfg.uses_gp:
         # each side fits its own hyperparameters, as a `gpguided reproduce` of one seed would
@@ -69,7 +69,7 @@ def batch_vs_alone(method: str, seeds: list[int], preset: str, overrides: dict,
         alone = np.concatenate([np.asarray(run_plain(keys[i:i + 1])) for i in range(len(seeds))])
         fit_diff = 0.0
     curve = np.abs(batch - alone)
-    final = np.abs(reproduce.final_performance(batch) - reproduce.final_performance(alone))
+    final = np.abs(summaries.final_performance(batch) - summaries.final_performance(alone))
     return dict(
         seeds=len(seeds),
         seed_loop=seed_loop,
@@ -89,8 +89,8 @@ def f32_vs_f64(dir64: str, dir32: str) -> dict:
     out = {}
     for i, m in enumerate(a["methods"]):
         j = list(b["methods"]).index(m)
-        f64 = reproduce.final_performance(a["mean_reward"][i])
-        f32 = reproduce.final_performance(b["mean_reward"][j])
+        f64 = summaries.final_performance(a["mean_reward"][i])
+        f32 = summaries.final_performance(b["mean_reward"][j])
         d = np.abs(f64 - f32)
         ci64, ci32 = stats_lib.bootstrap_ci(f64), stats_lib.bootstrap_ci(f32)
         out[str(m)] = dict(
@@ -101,10 +101,10 @@ def f32_vs_f64(dir64: str, dir32: str) -> dict:
             iqm_f64=stats_lib.iqm(f64), iqm_ci_f64=ci64,
             iqm_f32=stats_lib.iqm(f32), iqm_ci_f32=ci32,
             intervals_overlap=bool(ci64[0] <= ci32[1] and ci32[0] <= ci64[1]),
-            failing_seeds_f64=int(reproduce.failing_seeds(
-                {k: a[k][i] for k in reproduce.RECORD_FIELDS}, -np.inf)["any"].sum()),
-            failing_seeds_f32=int(reproduce.failing_seeds(
-                {k: b[k][j] for k in reproduce.RECORD_FIELDS}, -np.inf)["any"].sum()),
+            failing_seeds_f64=int(summaries.failing_seeds(
+                {k: a[k][i] for k in train_lib.RECORD_FIELDS}, -np.inf)["any"].sum()),
+            failing_seeds_f32=int(summaries.failing_seeds(
+                {k: b[k][j] for k in train_lib.RECORD_FIELDS}, -np.inf)["any"].sum()),
         )
     return out
 
@@ -156,8 +156,8 @@ def main(argv=None) -> int:
     if args.f64 and args.f32:
         result["f32_vs_f64"] = f32_vs_f64(args.f64, args.f32)
     os.makedirs(args.out, exist_ok=True)
-    reproduce.atomic_write_text(os.path.join(args.out, "consistency.json"), json.dumps(result, indent=2))
-    reproduce.atomic_write_text(os.path.join(args.out, "consistency.md"), markdown(result) + "\n")
+    checkpoints.atomic_write_text(os.path.join(args.out, "consistency.json"), json.dumps(result, indent=2))
+    checkpoints.atomic_write_text(os.path.join(args.out, "consistency.md"), markdown(result) + "\n")
     print(json.dumps(result, indent=2))
     return 0
 

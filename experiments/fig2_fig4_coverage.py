@@ -63,8 +63,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import gpguided_jax  # noqa: E402
-from gpguided_jax import analysis, estimators, reproduce  # noqa: E402
+from gpguided_jax import analysis, estimators, sharding  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
+from gpguided_jax import stats as stats_lib  # noqa: E402
 from gpguided_jax import train as train_lib  # noqa: E402
 
 gpguided_jax.enable_x64()  # float64: the package leaves this choice to its user
@@ -97,7 +98,7 @@ def train_with_checkpoints(cfg, seeds, kernels, *, num_checkpoints, eval_episode
       update count at each checkpoint, and the `train` function.
     """
     train = train_lib.make_train(cfg)
-    keys = reproduce.seed_keys(seeds)
+    keys = sharding.seed_keys(seeds)
     if kernels is not None:
         state = jax.jit(jax.vmap(lambda k, kern: train.init(k, cfg, kern)))(keys, kernels)
     else:
@@ -119,7 +120,7 @@ def train_with_checkpoints(cfg, seeds, kernels, *, num_checkpoints, eval_episode
         visited.append(np.asarray(ep.states))
         updates.append((c + 1) * n)
     records = {k: np.concatenate([np.asarray(getattr(r, k)) for r in recs], axis=1)
-               for k in train_lib.UpdateRecord._fields}
+               for k in train_lib.RECORD_FIELDS}
     return state, records, np.stack(visited, axis=1), ep, np.asarray(updates), train
 
 
@@ -238,7 +239,7 @@ def main(argv=None):
 
     t0 = time.perf_counter()
     fit = jax.jit(jax.vmap(train_lib.make_train(cfgs["gp_pg"]).fit_kernel_for_seed))
-    kernels = jax.device_get(fit(reproduce.seed_keys(seeds)))
+    kernels = jax.device_get(fit(sharding.seed_keys(seeds)))
     _log(f"hyperparameter fit for {len(seeds)} seeds: {time.perf_counter() - t0:.1f}s")
 
     runs = {}
@@ -262,7 +263,7 @@ def main(argv=None):
     n_cells = GRID["num_angle_bins"] * GRID["num_velocity_bins"]
     summary = []
     for m in METHODS:
-        mean, half = analysis.t_interval(runs[m]["coverage"])
+        mean, half = stats_lib.t_interval(runs[m]["coverage"])
         summary.append(dict(method=m, coverage_mean=float(mean), ci95_low=float(mean - half),
                             ci95_high=float(mean + half),
                             cells_mean=float(runs[m]["cells"].mean()), seeds=len(seeds)))
@@ -296,7 +297,7 @@ def main(argv=None):
                   "state grid [%]")
     ax.set_title(f"(a) state coverage over a run: mean, 95% CI, {len(seeds)} seeds")
     for i, m in enumerate(METHODS):
-        mean, half = analysis.t_interval(runs[m]["cumulative"] * 100)
+        mean, half = stats_lib.t_interval(runs[m]["cumulative"] * 100)
         u = runs[m]["updates"]
         ax2.plot(u, mean, "o-", ms=3, c=f"C{i}", label=LABELS[m])
         if len(seeds) > 1:
@@ -403,7 +404,7 @@ def main(argv=None):
              checkpoint_updates=runs["gp_pg"]["updates"],
              visited_states=np.stack([runs[m]["visited"] for m in METHODS]),
              **{k: np.stack([runs[m]["records"][k] for m in METHODS])
-                for k in train_lib.UpdateRecord._fields})
+                for k in train_lib.RECORD_FIELDS})
 
     print("| method | coverage (mean) | 95% CI | cells visited (mean) |")
     print("|---|---|---|---|")

@@ -29,7 +29,7 @@ import subprocess
 import sys
 import time
 
-from gpguided_jax.cli import available_cores, single_threaded_lapack  # light: imports no JAX
+from gpguided_jax.runtime import available_cores, single_threaded_lapack
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CHUNK = 50
@@ -45,17 +45,17 @@ def measure(num_seeds: int, measured_updates: int | None = None, seed_loop: str 
 
     import gpguided_jax
     from gpguided_jax import config as config_lib
-    from gpguided_jax import distributed, reproduce
+    from gpguided_jax import sharding
     from gpguided_jax import train as train_lib
 
     gpguided_jax.enable_x64()
-    mesh = reproduce.make_mesh(None, num_seeds)  # as `gpguided reproduce` runs the seeds
-    loop = reproduce.resolve_seed_loop(seed_loop, mesh)
-    seeds = reproduce.pad_seeds(range(2000, 2000 + num_seeds), mesh.devices.size)
-    keys = distributed.shard(reproduce.seed_keys(seeds), mesh)  # not a result: throughput only
+    mesh = sharding.make_mesh(None, num_seeds)  # as `gpguided reproduce` runs the seeds
+    loop = sharding.resolve_seed_loop(seed_loop, mesh)
+    seeds = sharding.pad_seeds(range(2000, 2000 + num_seeds), mesh.devices.size)
+    keys = sharding.shard(sharding.seed_keys(seeds), mesh)  # not a result: throughput only
     out = {"seeds": num_seeds, "devices": int(mesh.devices.size), "seed_loop": loop, "methods": {}}
     cfg_gp = config_lib.preset("paper", method="gp_pg")
-    fit = reproduce.per_seed_program(train_lib.make_train(cfg_gp).fit_kernel_for_seed, mesh, loop)
+    fit = sharding.per_seed_program(train_lib.make_train(cfg_gp).fit_kernel_for_seed, mesh, loop)
     t0 = time.perf_counter()
     compiled_fit = fit.lower(keys).compile()
     out["hyperfit_compile_s"] = time.perf_counter() - t0
@@ -67,12 +67,12 @@ def measure(num_seeds: int, measured_updates: int | None = None, seed_loop: str 
         cfg = config_lib.preset("paper", method=method)
         train = train_lib.make_train(cfg)
         if cfg.uses_gp:
-            state = reproduce.per_seed_program(lambda k, p, t=train, c=cfg: t.init(k, c, p),
+            state = sharding.per_seed_program(lambda k, p, t=train, c=cfg: t.init(k, c, p),
                                                mesh, loop)(keys, priors)
         else:
-            state = reproduce.per_seed_program(lambda k, t=train, c=cfg: t.init(k, c), mesh,
+            state = sharding.per_seed_program(lambda k, t=train, c=cfg: t.init(k, c), mesh,
                                                loop)(keys)
-        run = reproduce.per_seed_program(lambda s, t=train, c=cfg: t.run_chunk(s, c, CHUNK),
+        run = sharding.per_seed_program(lambda s, t=train, c=cfg: t.run_chunk(s, c, CHUNK),
                                          mesh, loop)
         t0 = time.perf_counter()
         compiled = run.lower(state).compile()

@@ -30,7 +30,7 @@ import time
 import jax
 import numpy as np
 
-from gpguided_jax import baselines, reproduce, swingup
+from gpguided_jax import baselines, checkpoints, sharding, summaries, swingup
 from gpguided_jax import config as config_lib
 from gpguided_jax import train as train_lib
 
@@ -48,7 +48,7 @@ def warm_start(seeds, learning_rate=None) -> dict:
     theta_fit, mse = swingup.fit_controller(
         controller, cfg0.pendulum, swingup.energy_pumping_policy(cfg0.pendulum),
         jax.random.PRNGKey(7), episode_length=cfg0.episode_length, num_episodes=100)
-    keys = reproduce.seed_keys(seeds)
+    keys = sharding.seed_keys(seeds)
     priors = jax.jit(jax.vmap(train_lib.make_train(cfg0).fit_kernel_for_seed))(keys)
     for m in config_lib.METHODS:
         lr = {} if learning_rate is None else {"learning_rate": learning_rate}
@@ -65,10 +65,10 @@ def warm_start(seeds, learning_rate=None) -> dict:
         succ = np.asarray(rec.eval_success_rate)
         rew = np.asarray(rec.eval_reward)
         out[m] = {"first_10_updates_success": float(succ[:, :10].mean()),
-                  "final_success": float(reproduce.final_performance(succ).mean()),
-                  "final_success_per_seed": reproduce.final_performance(succ).tolist(),
+                  "final_success": float(summaries.final_performance(succ).mean()),
+                  "final_success_per_seed": summaries.final_performance(succ).tolist(),
                   "first_10_updates_reward": float(rew[:, :10].mean()),
-                  "final_reward": float(reproduce.final_performance(rew).mean())}
+                  "final_reward": float(summaries.final_performance(rew).mean())}
         log(f"[warm {m} lr {float(cfg.learning_rate):g}] success first 10 updates "
             f"{out[m]['first_10_updates_success']:.2f} -> "
             f"final {out[m]['final_success']:.2f}; reward {out[m]['first_10_updates_reward']:.3f} "
@@ -112,7 +112,7 @@ def main(argv=None) -> int:
         report[key] = warm_start(SEEDS, args.warm_lr)
     if "sac" in args.parts:
         report["sac_long_horizon"] = sac_long_horizon(SEEDS)
-    reproduce.atomic_write_text(path, json.dumps(report, indent=2))
+    checkpoints.atomic_write_text(path, json.dumps(report, indent=2))
     print(json.dumps(report, indent=2))
     return 0
 

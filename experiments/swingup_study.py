@@ -59,8 +59,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import gpguided_jax  # noqa: E402
-from gpguided_jax import baselines, reproduce, sweep  # noqa: E402
+from gpguided_jax import baselines, checkpoints, reproduce, sharding, summaries, sweep  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
+from gpguided_jax import stats as stats_lib  # noqa: E402
 
 METHODS = config_lib.METHODS
 BASELINES = ("ppo", "sac")
@@ -116,8 +117,8 @@ def method_env_steps(cfg) -> np.ndarray:
 
 def score_method(records: dict) -> tuple[float, float]:
     """(final deterministic success rate, final eval reward per step), means over seeds."""
-    succ = reproduce.final_performance(np.asarray(records["eval_success_rate"], float))
-    rew = reproduce.final_performance(np.asarray(records["eval_reward"], float))
+    succ = summaries.final_performance(np.asarray(records["eval_success_rate"], float))
+    rew = summaries.final_performance(np.asarray(records["eval_reward"], float))
     return float(succ.mean()), float(rew.mean())
 
 
@@ -266,8 +267,8 @@ def heldout(out: str, seeds, tuning: dict, dtype: str) -> None:
         curves[f"{name}_success"] = np.stack([r.success_rate for r in rs])
         curves[f"{name}_reward"] = np.stack([r.reward_per_step for r in rs])
         meta["wall_s"][name] = float(sum(r.wall_time for r in rs))
-    reproduce.atomic_savez(os.path.join(out, "heldout.npz"), **curves)
-    reproduce.atomic_write_text(os.path.join(out, "heldout.json"), json.dumps(meta, indent=2))
+    checkpoints.atomic_savez(os.path.join(out, "heldout.npz"), **curves)
+    checkpoints.atomic_write_text(os.path.join(out, "heldout.json"), json.dumps(meta, indent=2))
 
 
 # ---------------------------------------------------------------------------------------- report
@@ -319,7 +320,7 @@ def report(out: str) -> str:
         row["wall_s"] = meta["wall_s"][n]
         rows.append(row)
         table[n] = row
-    reproduce.atomic_write_text(os.path.join(out, "heldout_table.json"), json.dumps(rows, indent=2))
+    checkpoints.atomic_write_text(os.path.join(out, "heldout_table.json"), json.dumps(rows, indent=2))
 
     def fmt(r, key):
         k, n = r[key + "_reached"], r["seeds"]
@@ -338,13 +339,13 @@ def report(out: str) -> str:
         md.append(f"| {r['method']} | {fmt(r, 'steps_to_50')} | {fmt(r, 'steps_to_90')} | "
                   f"{r['final_success']:.2f} | {r['final_reward']:.3f} | {r['wall_s']:.0f} |")
     text = "\n".join(md)
-    reproduce.atomic_write_text(os.path.join(out, "heldout.md"), text + "\n")
+    checkpoints.atomic_write_text(os.path.join(out, "heldout.md"), text + "\n")
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.2))
     for i, n in enumerate(names):
         steps = curves[f"{n}_steps"]
         for ax, y in ((a, smoothed(curves[f"{n}_success"], n)), (b, curves[f"{n}_reward"])):
-            mean, half = baselines.ci95(y)
+            mean, half = stats_lib.t_interval(y)
             ax.plot(steps, mean, color=f"C{i}", label=n, lw=1.5)
             ax.fill_between(steps, mean - half, mean + half, color=f"C{i}", alpha=0.15)
     a.set(xlabel="environment steps", ylabel="swing-up success (deterministic policy)",
@@ -384,7 +385,7 @@ def gp_figure(out: str, seeds, dtype: str, chunk: int = 10, episodes: int = 5) -
     from gpguided_jax import analysis
     from gpguided_jax import train as train_lib
 
-    keys = reproduce.seed_keys(seeds)
+    keys = sharding.seed_keys(seeds)
     fit = jax.jit(jax.vmap(train_lib.make_train(base_config("gp_pg", dtype=dtype)).fit_kernel_for_seed))
     priors = fit(keys)
     phi = np.linspace(-math.pi / 2, 3 * math.pi / 2, 73)
@@ -470,7 +471,7 @@ def gp_figure(out: str, seeds, dtype: str, chunk: int = 10, episodes: int = 5) -
                    "upright_share_mean": curves[m]["upright_share"].mean(0).tolist(),
                    "height_mean": curves[m]["height"].mean(0).tolist()} for m in GP_METHODS}
     summary["seeds"] = list(seeds)
-    reproduce.atomic_write_text(os.path.join(out, "gp_figure.json"), json.dumps(summary, indent=2))
+    checkpoints.atomic_write_text(os.path.join(out, "gp_figure.json"), json.dumps(summary, indent=2))
     return summary
 
 
@@ -498,8 +499,8 @@ def main(argv=None) -> int:
                 rep["methods"][name] = (tune_baseline(name, TUNING_SEEDS) if name in BASELINES
                                         else tune_method(name, TUNING_SEEDS, args.dtype))
             rep["methods"][name]["wall_s"] = time.perf_counter() - t0
-            reproduce.atomic_write_text(path, json.dumps(rep, indent=2))
-        reproduce.atomic_write_text(os.path.join("docs", "tuning_swingup.md"), tuning_markdown(rep))
+            checkpoints.atomic_write_text(path, json.dumps(rep, indent=2))
+        checkpoints.atomic_write_text(os.path.join("docs", "tuning_swingup.md"), tuning_markdown(rep))
     elif args.stage == "heldout":
         with open(path) as f:
             heldout(args.out, HELDOUT_SEEDS, json.load(f), args.dtype)

@@ -157,20 +157,3 @@ def gp_surface(
     value, var = gp_at_states(gp, kernel, controller, controller_params, states)
     return value.reshape(p.shape), var.reshape(p.shape)
 
-
-def t_interval(samples, axis: int = 0, confidence: float = 0.95):
-    """Mean and half-width of the Student-t confidence interval of the mean along `axis`.
-
-    NumPy/SciPy (not traced): for summaries of finished runs. The half-width is NaN for one sample.
-    """
-    import numpy as np
-
-    from gpguided_jax import stats
-
-    x = np.asarray(samples, dtype=float)
-    n = x.shape[axis]
-    mean = x.mean(axis=axis)
-    if n < 2:
-        return mean, np.full_like(mean, np.nan)
-    half = stats.t_half_width(x, axis=axis, q=0.5 + confidence / 2)
-    return mean, half

@@ -35,7 +35,6 @@ breaks under x64 (and the package turns x64 on at import).
 from __future__ import annotations
 
 import functools
-import math
 import time
 from typing import Callable, NamedTuple
 
@@ -266,25 +265,12 @@ def matched_budget_value(
     return curve[..., sel].mean(-1)
 
 
-def ci95(x: np.ndarray, axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and half-width of the 95% t-interval over `axis` (half-width 0 for one sample)."""
-    from scipy import stats
-
-    x = np.asarray(x, float)
-    n = x.shape[axis]
-    mean = x.mean(axis)
-    if n < 2:
-        return mean, np.zeros_like(mean)
-    return mean, stats.t.ppf(0.975, n - 1) * x.std(axis, ddof=1) / math.sqrt(n)
-
-
 __all__ = [
     "PPO_DEFAULTS",
     "SAC_DEFAULTS",
     "SACResult",
     "train_sac",
     "PPOResult",
-    "ci95",
     "float32_params",
     "matched_budget_value",
     "policy_success_rate",

@@ -36,8 +36,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gpguided_jax import checkpoints, gp_reference, kernels, pendulum, reproduce, sharding, sparse_gp
 from gpguided_jax import config as config_lib
-from gpguided_jax import distributed, gp_reference, kernels, pendulum, reproduce, sparse_gp
 from gpguided_jax import train as train_lib
 
 
@@ -82,7 +82,7 @@ def print_report(report: dict, out: str | None = None) -> None:
     text = json.dumps(report, indent=2)
     if out:
         os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-        reproduce.atomic_write_text(out, text + "\n")
+        checkpoints.atomic_write_text(out, text + "\n")
     print(text)
 
 
@@ -129,14 +129,14 @@ def gp_streams(seeds: int, n: int, dtype=None):
 
 
 def gp_stream_program(mesh, n: int, capacity: int, dtype=None):
-    """The per-seed program (over `mesh`, `reproduce.per_seed_program`) that takes one stream of n
+    """The per-seed program (over `mesh`, `sharding.per_seed_program`) that takes one stream of n
     pairs into an empty GP of `capacity` with `GP_SETTINGS`: `gpguided bench`'s sparse-GP figure."""
     s = GP_SETTINGS
     hyper = kernels.make_kernel_params(s["lengthscales"], s["signal_variance"], s["noise_variance"],
                                        dtype=dtype)
     kw = dict(novelty_tol=s["novelty_tol"], age_penalty=s["age_penalty"], age_scale=s["age_scale"])
     ts = jnp.arange(n) // PAIRS_PER_STAMP
-    return reproduce.per_seed_program(lambda x, y: sparse_gp.update_batch(
+    return sharding.per_seed_program(lambda x, y: sparse_gp.update_batch(
         sparse_gp.init(capacity, 4, dtype), x, y, hyper, ts, **kw), mesh)
 
 
@@ -145,10 +145,10 @@ def bench_gp(repeats: int, seeds: int = 10, n: int = 3000, capacity: int = 100,
     s = GP_SETTINGS
     kw = dict(novelty_tol=s["novelty_tol"], age_penalty=s["age_penalty"], age_scale=s["age_scale"])
     xs, ys, streams = gp_streams(seeds, n)
-    mesh = reproduce.make_mesh(None, seeds)  # as training runs it: seeds over devices, per device
+    mesh = sharding.make_mesh(None, seeds)  # as training runs it: seeds over devices, per device
     if seeds % mesh.devices.size:            # one after another on a CPU (`per_seed_program`)
-        mesh = reproduce.make_mesh(1)
-    xs, ys = distributed.shard((xs, ys), mesh)
+        mesh = sharding.make_mesh(1)
+    xs, ys = sharding.shard((xs, ys), mesh)
     run = gp_stream_program(mesh, n, capacity)
     t0 = time.perf_counter()
     jax.block_until_ready(run(xs, ys))
@@ -232,9 +232,9 @@ def numpy_gp_pg_seconds_per_update(cfg, prior, num_updates, rng) -> float:
 def seed_mesh(seeds: int):
     """The mesh `gpguided reproduce` uses for seeds 0 .. seeds-1 in one process, and their keys
     (padded to the mesh) sharded over it: (mesh, keys)."""
-    mesh = reproduce.make_mesh(None, seeds)
-    keys = reproduce.seed_keys(reproduce.pad_seeds(range(seeds), mesh.devices.size))
-    return mesh, distributed.shard(keys, mesh)
+    mesh = sharding.make_mesh(None, seeds)
+    keys = sharding.seed_keys(sharding.pad_seeds(range(seeds), mesh.devices.size))
+    return mesh, sharding.shard(keys, mesh)
 
 
 def initial_states(cfg, mesh, keys, priors):
@@ -242,8 +242,8 @@ def initial_states(cfg, mesh, keys, priors):
     the fitted `priors` (shared by the GP methods), REINFORCE from none."""
     train = train_lib.make_train(cfg)
     if cfg.uses_gp:
-        return reproduce.per_seed_program(lambda k, p: train.init(k, cfg, p), mesh)(keys, priors)
-    return reproduce.per_seed_program(lambda k: train.init(k, cfg), mesh)(keys)
+        return sharding.per_seed_program(lambda k, p: train.init(k, cfg, p), mesh)(keys, priors)
+    return sharding.per_seed_program(lambda k: train.init(k, cfg), mesh)(keys)
 
 
 def compiled_gp_methods_program(preset: str, methods, mesh, seed_loop: str, keys, priors):
@@ -265,14 +265,14 @@ def compiled_gp_methods_program(preset: str, methods, mesh, seed_loop: str, keys
 
 def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "paper") -> dict:
     """The hyperparameter fit and each method's whole run, compiled as `gpguided reproduce`
-    compiles them (`reproduce.per_seed_program` over the seed mesh), timed apart from compilation."""
+    compiles them (`sharding.per_seed_program` over the seed mesh), timed apart from compilation."""
     mesh, keys = seed_mesh(seeds)
     out: dict = {"seeds": seeds, "devices": [str(d) for d in mesh.devices.flat],
-                 "seed_loop": reproduce.resolve_seed_loop("auto", mesh), "methods": {}}
+                 "seed_loop": sharding.resolve_seed_loop("auto", mesh), "methods": {}}
     cfg_gp = config_lib.preset(preset, method="gp_pg")
 
     def compiled_fit(cfg):
-        fit = reproduce.per_seed_program(train_lib.make_train(cfg).fit_kernel_for_seed, mesh)
+        fit = sharding.per_seed_program(train_lib.make_train(cfg).fit_kernel_for_seed, mesh)
         t0 = time.perf_counter()
         compiled = fit.lower(keys).compile()
         return compiled, time.perf_counter() - t0
@@ -294,7 +294,7 @@ def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "pap
         cfg = config_lib.preset(preset, method=method)
         train = train_lib.make_train(cfg)
         state = initial_states(cfg, mesh, keys, priors)
-        run = reproduce.per_seed_program(lambda s: train.run_chunk(s, cfg, cfg.num_updates), mesh)
+        run = sharding.per_seed_program(lambda s: train.run_chunk(s, cfg, cfg.num_updates), mesh)
         t0 = time.perf_counter()
         compiled = run.lower(state).compile()
         compile_s = time.perf_counter() - t0

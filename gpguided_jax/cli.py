@@ -1,10 +1,14 @@
-"""The `gpguided` command line. `gpguided --help` lists the commands; each has its own --help."""
+"""The `gpguided` command line: parsing and the commands (demo, reproduce, sweep, bench).
+`gpguided --help` lists the commands; each has its own --help. The process's set-up before a
+command runs (LAPACK threads, CPU devices, precision, compilation cache) is `runtime`'s."""
 
 from __future__ import annotations
 
 import argparse
 import os
 import sys
+
+from gpguided_jax import runtime
 
 
 def positive_int(text: str) -> int:
@@ -29,150 +33,8 @@ def non_negative_int(text: str) -> int:
     return value
 
 
-DEFAULT_COMPILE_CACHE = os.environ.get(
-    "GPGUIDED_COMPILE_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "gpguided_jax", "xla"))
-
-
-class CompileCacheCounter:
-    """Counts, from JAX's monitoring events in this process, the programs looked up in the
-    persistent compilation cache, those loaded from it, and those written to it.
-
-    A program that is looked up and not loaded was compiled (it is written unless it compiled
-    faster than jax_persistent_cache_min_compile_time_secs). The counts tell whether a repeated
-    run really loaded its programs, which the cache's own log does not say."""
-
-    _EVENTS = {"/jax/compilation_cache/compile_requests_use_cache": "requests",
-               "/jax/compilation_cache/cache_hits": "loaded",
-               "/jax/compilation_cache/cache_misses": "written"}  # recorded on writing an entry
-
-    def __init__(self):
-        self.requests = self.loaded = self.written = 0
-
-    def __call__(self, event: str, **kwargs) -> None:
-        name = self._EVENTS.get(event)
-        if name is not None:
-            setattr(self, name, getattr(self, name) + 1)
-
-    def summary(self, path: str, min_compile_s: float) -> str:
-        line = (f"compilation cache: {self.loaded} of {self.requests} program(s) loaded from {path}, "
-                f"{self.requests - self.loaded} compiled, {self.written} of them written to it "
-                f"(those that took over {min_compile_s:g} s to compile)")
-        if self.loaded:
-            line += (". XLA:CPU may log 'Target machine feature +prefer-no-gather is not supported "
-                     "on the host machine ... SIGILL' for each program it loads: on CPUs whose "
-                     "LLVM tuning sets these preferences (seen on AMD Zen 4) that is a false "
-                     "alarm, openxla/xla#44565; the programs loaded are the ones compiled here")
-        return line
-
-
-_COMPILE_CACHE: tuple[str, CompileCacheCounter] | None = None  # (directory, counter) once set
-
-
-def _set_compile_cache(path: str | None) -> None:
-    """JAX's persistent compilation cache: a repeated run loads its compiled programs instead of
-    compiling them again. 'none' turns it off.
-
-    With jax 0.9.2 on CPU every program this project compiles loads correctly (and computes the
-    same results bit for bit), but loading a much larger cached program crashes the process
-    (experiments/compile_cache_check.py). The cache directory is therefore named in the log, and
-    `faulthandler` is on, so that such a crash says where it happened and how to avoid it. At the
-    end the command says how many programs it loaded and compiled (`CompileCacheCounter`)."""
-    global _COMPILE_CACHE
-    if path and path.lower() != "none":
-        import faulthandler
-
-        import jax
-        import jax.monitoring
-
-        os.makedirs(path, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", path)
-        if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
-            # every program, not only those over JAX's default of 1 s: the paper run's 13 that
-            # compile in under 1 s took ~2 s of every warm run to compile again
-            jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-        if not faulthandler.is_enabled():
-            faulthandler.enable()
-        if _COMPILE_CACHE is None:
-            counter = CompileCacheCounter()
-            jax.monitoring.register_event_listener(counter)
-            _COMPILE_CACHE = (path, counter)
-        print(f"compilation cache: {path} ('--compile-cache none' turns it off)", file=sys.stderr,
-              flush=True)
-
-
-def _report_compile_cache() -> None:
-    if _COMPILE_CACHE is not None:
-        import jax
-
-        path, counter = _COMPILE_CACHE
-        print(counter.summary(path, jax.config.jax_persistent_cache_min_compile_time_secs),
-              file=sys.stderr, flush=True)
-
-
-def available_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
-LAPACK_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "GOTO_NUM_THREADS", "OMP_NUM_THREADS")
-
-
-def lapack_threads(environ, lapack_loaded: bool) -> str | None:
-    """The OPENBLAS_NUM_THREADS this process's LAPACK should run with: "1", or None to leave it.
-
-    JAX's CPU LAPACK calls (the hyperparameter fit's Cholesky and triangular solves) go to the
-    OpenBLAS that SciPy bundles, which by default starts one thread per core for every call. With
-    one JAX device per core, every device makes such calls at the same time and the threads
-    oversubscribe the cores: the paper preset's 10-seed fit takes about twice as long as with one
-    thread (experiments/bench_lapack_threads.py, docs/results/lapack_threads.json). One thread
-    also makes the LAPACK results independent of the machine's core count and of the device count
-    (OpenBLAS's rounding depends on its thread count).
-    None when the user has set any of `LAPACK_THREAD_VARIABLES`, or when SciPy's LAPACK is
-    already loaded (OpenBLAS reads the variable when it loads)."""
-    if lapack_loaded or any(v in environ for v in LAPACK_THREAD_VARIABLES):
-        return None
-    return "1"
-
-
-def single_threaded_lapack() -> None:
-    """Sets OPENBLAS_NUM_THREADS=1 for this process (see `lapack_threads`); call it before JAX's
-    first LAPACK call, as `main` does before anything else."""
-    threads = lapack_threads(os.environ, "scipy.linalg" in sys.modules)
-    if threads is not None:
-        os.environ["OPENBLAS_NUM_THREADS"] = threads
-
-
-def _set_cpu_devices(count: int | None) -> None:
-    """One JAX CPU device per core (before JAX starts its backends), so that the seeds' shards run
-    in parallel: XLA runs one CPU device's program largely on one core. LAPACK runs one thread
-    (`single_threaded_lapack`). The device count is left alone when XLA_FLAGS already sets it.
-    Accelerators are unaffected."""
-    single_threaded_lapack()
-    if "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
-        return
-    import jax
-
-    try:
-        jax.config.update("jax_num_cpu_devices", int(count or available_cores()))
-    except RuntimeError:  # JAX already runs in this process (e.g. `cli.main` from a notebook)
-        if count is not None:
-            raise SystemExit(
-                f"gpguided: error: --cpu-devices {count}: JAX has already started in this process "
-                f"with {len(jax.devices('cpu'))} CPU device(s); run the command in a new process"
-            ) from None
-
-
-def _set_precision(dtype: str) -> None:
-    """float64 runs need JAX's 64-bit mode; this process is ours, so switch it as asked."""
-    import gpguided_jax
-
-    gpguided_jax.enable_x64(dtype == "float64")
-
-
 def _cmd_demo(args) -> int:
-    _set_precision("float64")
+    runtime.set_precision("float64")
     import jax
     import jax.numpy as jnp
     import matplotlib
@@ -241,10 +103,10 @@ def _start_processes(args) -> None:
 
 
 def _cmd_reproduce(args) -> int:
-    _set_cpu_devices(args.cpu_devices)
+    runtime.set_cpu_devices(args.cpu_devices)
     _start_processes(args)
-    _set_precision(args.dtype)
-    _set_compile_cache(args.compile_cache)
+    runtime.set_precision(args.dtype)
+    runtime.set_compile_cache(args.compile_cache)
     from gpguided_jax import distributed, reproduce
 
     seeds = list(range(args.seed_start, args.seed_start + args.seeds))
@@ -260,7 +122,7 @@ def _cmd_reproduce(args) -> int:
         seed_loop=args.seed_loop,
         gp_program=args.gp_program.replace("-", "_"),
     )
-    _report_compile_cache()
+    runtime.report_compile_cache()
     if not out["complete"]:
         print(f"stopped early (--max-chunks); run the same command again to resume from {args.out}")
         return 0
@@ -290,8 +152,8 @@ def _parse_overrides(items: list[str] | None) -> dict:
 
 
 def _cmd_bench(args) -> int:
-    _set_cpu_devices(None)
-    _set_precision("float64")
+    runtime.set_cpu_devices(None)
+    runtime.set_precision("float64")
     from gpguided_jax import bench
 
     bench.print_report(bench.run(repeats=args.repeats, seeds=args.seeds,
@@ -307,9 +169,9 @@ def _cmd_sweep(args) -> int:
         field = sweep.resolve_param(args.param)
     except ValueError as e:
         raise SystemExit(f"gpguided sweep: error: {e}") from None
-    _set_cpu_devices(args.cpu_devices)
-    _set_precision(args.dtype)
-    _set_compile_cache(args.compile_cache)
+    runtime.set_cpu_devices(args.cpu_devices)
+    runtime.set_precision(args.dtype)
+    runtime.set_compile_cache(args.compile_cache)
     overrides = _parse_overrides(args.set)
     overrides["dtype"] = args.dtype
     if args.num_updates is not None:
@@ -324,7 +186,7 @@ def _cmd_sweep(args) -> int:
         )
     except (ValueError, TypeError) as e:
         raise SystemExit(f"gpguided sweep: error: {e}") from None
-    _report_compile_cache()
+    runtime.report_compile_cache()
     paths = sweep.write_sweep(result, out_dir, preset=args.preset)
     print(sweep.sweep_markdown(result))
     for p in paths.values():
@@ -333,7 +195,7 @@ def _cmd_sweep(args) -> int:
 
 
 def _add_device_options(parser: argparse.ArgumentParser, what: str) -> None:
-    """--devices, --cpu-devices and --seed-loop (`reproduce.per_seed_program`)."""
+    """--devices, --cpu-devices and --seed-loop (`sharding.per_seed_program`)."""
     parser.add_argument("--devices", type=positive_int, default=None,
                         help="use at most this many devices")
     parser.add_argument("--cpu-devices", type=positive_int, default=None,
@@ -376,7 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="computation dtype of every array (default float64)")
     rep.add_argument("--chunk-size", type=positive_int, default=50, help="updates per compiled chunk")
     _add_device_options(rep, "seeds")
-    rep.add_argument("--compile-cache", default=DEFAULT_COMPILE_CACHE, metavar="DIR",
+    rep.add_argument("--compile-cache", default=runtime.DEFAULT_COMPILE_CACHE, metavar="DIR",
                      help="JAX's persistent compilation cache, so that a repeated run does not "
                      "compile again (default %(default)s; 'none' turns it off)")
     rep.add_argument("--coordinator", default=None, metavar="HOST:PORT",
@@ -425,7 +287,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--set", nargs="*", metavar="FIELD=VALUE",
                     help="further config overrides, e.g. --set gp_capacity=50 optimizer=adam")
     _add_device_options(sw, "runs")
-    sw.add_argument("--compile-cache", default=DEFAULT_COMPILE_CACHE, metavar="DIR",
+    sw.add_argument("--compile-cache", default=runtime.DEFAULT_COMPILE_CACHE, metavar="DIR",
                     help="JAX's persistent compilation cache ('none' turns it off)")
     sw.set_defaults(func=_cmd_sweep)
 
@@ -450,7 +312,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    single_threaded_lapack()  # first: building the parser may import modules that load LAPACK
+    runtime.single_threaded_lapack()  # first: building the parser may import modules that load LAPACK
     args = build_parser().parse_args(argv)
     return args.func(args)
 

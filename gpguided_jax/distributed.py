@@ -1,4 +1,4 @@
-"""Seeds across processes and machines: `jax.distributed` helpers for `gpguided reproduce`.
+"""Seeds across processes and hosts: `jax.distributed` helpers for `gpguided reproduce`.
 
 JAX's multi-controller model: the same program runs in every process; `initialize` connects them,
 after which `jax.devices()` lists the devices of all processes and a `jit` over a mesh of them is
@@ -25,7 +25,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
     """Connects this process to the others (before any other JAX call). On CPUs, the
     cross-process collectives (gathering results, agreeing on a checkpoint; the compiled training
-    loop itself needs none, `reproduce.per_seed_program`) run over gloo."""
+    loop itself needs none, `sharding.per_seed_program`) run over gloo."""
     if not 0 <= process_id < num_processes:
         raise ValueError(f"process id {process_id} must be in [0, {num_processes})")
     try:

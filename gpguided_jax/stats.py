@@ -1,10 +1,13 @@
 """Summary statistics over seeds, with rliable's definitions (Agarwal et al., NeurIPS 2021).
 
-NumPy, for finished runs (not traced). With one task (one environment), rliable's
-"stratified" bootstrap resamples the runs (seeds) of each method with replacement:
+NumPy, for finished runs (not traced):
 
+* `t_interval`: the mean over seeds and the half-width of its Student-t interval (every t-interval
+  of the project's summaries, tables and figures);
 * `iqm`: the interquartile mean, ``scipy.stats.trim_mean(x, 0.25)`` (rliable `aggregate_iqm`);
-* `bootstrap_ci`: the percentile interval of a statistic over bootstrap resamples of the seeds;
+* `bootstrap_ci`: the percentile interval of a statistic over bootstrap resamples of the seeds
+  (with one task, one environment, rliable's "stratified" bootstrap resamples the runs, seeds,
+  of each method with replacement);
 * `probability_of_improvement`: P(X > Y) = U / (n m) with U the Mann-Whitney statistic of
   `scipy.stats.mannwhitneyu(x, y, alternative="greater")` (ties count one half), rliable's
   `probability_of_improvement`; its interval resamples the seeds of X and of Y independently.
@@ -23,7 +26,7 @@ def trim_mean(a, proportiontocut: float, axis: int = 0) -> np.ndarray:
     """``scipy.stats.trim_mean`` for NumPy arrays, the same operations (so the same bits): the
     mean after cutting int(proportiontocut * n) values from each end along `axis`. In NumPy
     because importing scipy.stats loads SciPy's OpenBLAS, whose thread count the command line
-    must set before it loads (`cli.single_threaded_lapack`), and takes over a second."""
+    must set before it loads (`runtime.single_threaded_lapack`), and takes over a second."""
     a = np.asarray(a)
     n = a.shape[axis]
     low = int(proportiontocut * n)
@@ -44,12 +47,16 @@ def t_quantile(q, df):
     return special.stdtrit(df, q)
 
 
-def t_half_width(samples, axis: int = 0, q: float = 0.975):
-    """Half-width of the Student-t interval of the mean along `axis` (q = 0.975: 95%), for two or
-    more samples."""
+def t_interval(samples, axis: int = 0, confidence: float = 0.95):
+    """Mean and half-width of the Student-t confidence interval of the mean along `axis`:
+    (mean, half_width), the interval mean +- half_width. The half-width is NaN for fewer than two
+    samples (a caller that draws a band of zero width then says so)."""
     x = np.asarray(samples, float)
     n = x.shape[axis]
-    return t_quantile(q, n - 1) * x.std(axis=axis, ddof=1) / np.sqrt(n)
+    mean = x.mean(axis=axis)
+    if n < 2:
+        return mean, np.full_like(mean, np.nan)
+    return mean, t_quantile(0.5 + confidence / 2, n - 1) * x.std(axis=axis, ddof=1) / np.sqrt(n)
 
 
 def iqm(x) -> float:

@@ -3,7 +3,7 @@
 The grid (values x seeds) is flattened into one axis of runs: the configs differ only in traced
 leaves of `TrainConfig`, so the stacked configs are one more argument of a single program (one for
 init, one for a chunk of updates), whatever the number of values. The runs are split over the
-devices and run as `gpguided reproduce` runs its seeds (`reproduce.per_seed_program`): on a CPU one
+devices and run as `gpguided reproduce` runs its seeds (`sharding.per_seed_program`): on a CPU one
 device per core, each taking its runs one after another, on an accelerator as one batch. On a
 CPU every run's records are therefore those of the same seed and config run alone, bit for bit.
 Static fields (sizes, method, controller, ...) fix shapes or the program and cannot be swept this
@@ -32,7 +32,8 @@ import jax
 import numpy as np
 
 from gpguided_jax import config as config_lib
-from gpguided_jax import reproduce
+from gpguided_jax import sharding, summaries
+from gpguided_jax import stats as stats_lib
 from gpguided_jax import train as train_lib
 
 ALIASES = {"lambda": "age_penalty", "beta": "inverse_temperature", "lr": "learning_rate"}
@@ -40,8 +41,6 @@ ALIASES = {"lambda": "age_penalty", "beta": "inverse_temperature", "lr": "learni
 # seed and shared by every value (bitwise what each run's own fit would give, at 1/len(values) cost).
 _HYPERFIT_INPUTS = ("discount", "init_log_std", "pendulum")
 SWEEPABLE_FIELDS = tuple(f for f in config_lib.TRACED_FIELDS if f != "pendulum")
-
-RECORD_FIELDS = train_lib.UpdateRecord._fields
 
 
 def _log(msg: str) -> None:
@@ -107,7 +106,7 @@ class SweepResult(NamedTuple):
 def summarise_sweep(param: str, values: Sequence[float], records: dict) -> list[dict]:
     """Per value: final performance (mean reward per step over the last 10% of updates) with its
     mean and 95% t-interval over seeds, initial performance and updates to 90% (as
-    `reproduce.summarise`); the mean share of basis vectors added by the latest update (Fig. 1's
+    `summaries.summarise`); the mean share of basis vectors added by the latest update (Fig. 1's
     quantity, what lambda acts on); and the number of seeds with skipped non-finite gradient
     estimates (such a run keeps its last finite policy, so its final performance is suspect).
 
@@ -115,7 +114,7 @@ def summarise_sweep(param: str, values: Sequence[float], records: dict) -> list[
       records: dict field -> (V, S, num_updates), with at least mean_reward, fresh_bv_share and
         nonfinite_grad.
     """
-    rows = reproduce.summarise(
+    rows = summaries.summarise(
         {str(v): {"mean_reward": records["mean_reward"][i]} for i, v in enumerate(values)})
     out = []
     for i, (v, r) in enumerate(zip(values, rows)):
@@ -155,7 +154,7 @@ def run_sweep(
         CPU one device per core needs `gpguided sweep --cpu-devices` or
         `jax.config.update("jax_num_cpu_devices", n)` before JAX starts).
       seed_loop: how each device takes its runs: 'auto' (one after another on a CPU, one batch on
-        an accelerator), 'map' or 'vmap' (`reproduce.per_seed_program`).
+        an accelerator), 'map' or 'vmap' (`sharding.per_seed_program`).
 
     Returns:
       `SweepResult`.
@@ -174,8 +173,8 @@ def run_sweep(
     cfgs = [config_lib.preset(preset, method=method, **{**overrides, field: v}) for v in values]
 
     t_start = time.perf_counter()
-    mesh = reproduce.make_mesh(num_devices)
-    loop = reproduce.resolve_seed_loop(seed_loop, mesh)
+    mesh = sharding.make_mesh(num_devices)
+    loop = sharding.resolve_seed_loop(seed_loop, mesh)
     grid = [(i, s) for i in range(len(values)) for s in seeds]  # value-major
     n_real = len(grid)
     grid += [grid[-1]] * ((-n_real) % mesh.devices.size)  # duplicates only fill devices
@@ -183,7 +182,7 @@ def run_sweep(
     train = train_lib.make_train(base)
 
     def program(fn, donate=False):
-        return reproduce.per_seed_program(fn, mesh, loop, donate=donate)
+        return sharding.per_seed_program(fn, mesh, loop, donate=donate)
 
     progress(f"[sweep {field}] {method} / {preset}: {len(values)} values x {len(seeds)} seeds = "
              f"{n_real} runs of {base.num_updates} updates, one program on {mesh.devices.size} "
@@ -191,7 +190,7 @@ def run_sweep(
     t0 = time.perf_counter()
     state = _initial_states(train, base, field, seeds, grid, stacked, mesh, program)
     progress(f"[sweep {field}] init (hyperparameter fit) {time.perf_counter() - t0:.1f}s")
-    records = _run_chunks(train, base, field, state, reproduce._shard(stacked, mesh), n_real,
+    records = _run_chunks(train, base, field, state, sharding.shard(stacked, mesh), n_real,
                           even_chunk_size(base.num_updates, chunk_size), program, progress)
     shape = (len(values), len(seeds), base.num_updates)
     records = {k: v.reshape(shape) for k, v in records.items()}
@@ -209,18 +208,18 @@ def run_sweep(
 def _initial_states(train, base, field, seeds, grid, stacked, mesh, program):
     """Every run's initial state. The GP prior is fitted once per seed and shared along the value
     axis unless the swept field is one the fit reads (then each run's init fits its own)."""
-    keys = reproduce.seed_keys([s for _, s in grid])
+    keys = sharding.seed_keys([s for _, s in grid])
     if base.uses_gp and field not in _HYPERFIT_INPUTS:
         fit = program(lambda k: train.fit_kernel_for_seed(k, base))
-        fit_keys = reproduce.seed_keys(reproduce.pad_seeds(seeds, mesh.devices.size))
-        kern = jax.device_get(fit(reproduce._shard(fit_keys, mesh)))
+        fit_keys = sharding.seed_keys(sharding.pad_seeds(seeds, mesh.devices.size))
+        kern = jax.device_get(fit(sharding.shard(fit_keys, mesh)))
         idx = np.asarray([seeds.index(s) for _, s in grid])
         kern = jax.tree_util.tree_map(lambda x: np.asarray(x)[idx], kern)
         init = program(lambda k, c, kp: train.init(k, c, kp))
-        state = init(*reproduce._shard((keys, stacked, kern), mesh))
+        state = init(*sharding.shard((keys, stacked, kern), mesh))
     else:
         init = program(lambda k, c: train.init(k, c))
-        state = init(*reproduce._shard((keys, stacked), mesh))
+        state = init(*sharding.shard((keys, stacked), mesh))
     return jax.block_until_ready(state)
 
 
@@ -228,12 +227,12 @@ def _run_chunks(train, base, field, state, stacked, n_real, n, program, progress
     """All updates, `n` per compiled call, with progress after each: field -> (runs, updates)
     records of the first `n_real` runs (the rest only fill devices)."""
     chunk = program(lambda s, c: train.run_chunk(s, c, n), donate=True)
-    records = {k: [] for k in RECORD_FIELDS}
+    records = {k: [] for k in train_lib.RECORD_FIELDS}
     t0 = time.perf_counter()
     for done in range(n, base.num_updates + 1, n):
         state, rec = chunk(state, stacked)
         rec = jax.device_get(rec)
-        for k in RECORD_FIELDS:
+        for k in train_lib.RECORD_FIELDS:
             records[k].append(np.asarray(getattr(rec, k))[:n_real])
         elapsed = time.perf_counter() - t0
         eta = elapsed / done * (base.num_updates - done)
@@ -266,8 +265,6 @@ def plot_sweep(result: SweepResult, path: str) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from gpguided_jax.analysis import t_interval
-
     values = np.asarray(result.values, float)
     order = np.argsort(values)
     final = np.array([r["final_mean"] for r in result.rows])[order]
@@ -295,7 +292,7 @@ def plot_sweep(result: SweepResult, path: str) -> str:
     smooth = np.apply_along_axis(lambda c: np.convolve(c, np.ones(w) / w, mode="valid"), -1, curves)
     steps = np.arange(w, curves.shape[-1] + 1)
     for i in order:
-        mean, half = t_interval(smooth[i], axis=0)
+        mean, half = stats_lib.t_interval(smooth[i], axis=0)
         line, = ax2.plot(steps, mean, label=f"{result.param}={values[i]:g}")
         if n_seeds > 1 and len(order) <= 3:
             ax2.fill_between(steps, mean - half, mean + half, alpha=0.15, color=line.get_color())

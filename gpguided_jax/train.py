@@ -114,6 +114,10 @@ class UpdateRecord(NamedTuple):
     eval_reward: jax.Array
 
 
+# The names of a run's records (results.npz, checkpoints, summaries): field -> (seeds, updates).
+RECORD_FIELDS = UpdateRecord._fields
+
+
 class Episode(NamedTuple):
     states: jax.Array  # (H, 2), the state each action was taken in
     next_states: jax.Array  # (H, 2), the state it led to

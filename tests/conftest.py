@@ -1,25 +1,24 @@
 """Shared test set-up.
 
 * JAX's 64-bit mode is on (the package leaves it to the user; float32 tests pass float32 arrays or
-  `dtype="float32"` explicitly, and tests/test_dtype.py runs the command line with the mode off).
-* One LAPACK thread per test worker, as the command line runs (`cli.single_threaded_lapack`): with
-  `pytest -n 2` on 2 cores, OpenBLAS's default of one thread per core per call oversubscribed the
-  cores in every hyperparameter fit.
-* One persistent compilation cache for the session, shared by the workers and by the command-line
-  subprocesses (GPGUIDED_COMPILE_CACHE), in a fresh temporary directory: a program that several
-  tests compile (the same tiny preset, resumed runs, repeated CLI runs) is compiled once. The
-  cache gives the same results bit for bit (`test_a_repeated_run_loads_its_programs_from_the_
-  compile_cache`), and the tests never write to the user's own cache in ~/.cache.
+  `dtype="float32"` explicitly, and test_cli.py's `test_cli_runs_in_float32` runs the command line
+  with the mode off).
+* One LAPACK thread per test worker, as the command line runs (`runtime.single_threaded_lapack`):
+  with `pytest -n 2` on 2 cores, OpenBLAS's default of one thread per core per call
+  oversubscribed the cores in every hyperparameter fit.
+* One persistent compilation cache for the test run, shared by the workers and by the
+  command-line subprocesses (GPGUIDED_COMPILE_CACHE), in a fresh temporary directory: a program
+  that several tests compile (the same tiny preset, resumed runs, repeated CLI runs) is compiled
+  once. The cache gives the same results bit for bit (`test_a_repeated_run_loads_its_programs_
+  from_the_compile_cache`), and the tests never write to the user's own cache in ~/.cache.
 * The tests that run an experiment script, a notebook or the command line end to end at tiny
   sizes (plumbing: files, shapes, finiteness, and runs that must agree with each other, all
   compiled alike) run it in a subprocess whose XLA CPU backend compiles at optimisation level 0
-  with XLA's older fusion emitters (`fast_compile_env`): they spend most of their time compiling.
-  Level 0 made them 1.3-1.6x faster (fig2_fig4_coverage.py's test: 35.6 s against 22.4 s); the
-  older emitters made the subprocess-heavy test files 1.37x faster again (3:59 against 2:55 on
-  2 cores, 2026-12-03). The library's in-process tests
-  and the compile-cache test compile as a user's run does.
+  with XLA's older fusion emitters (`fast_compile_env`): they spend most of their time compiling,
+  and both make the compilation, and so these tests, markedly faster. The library's in-process
+  tests and the compile-cache test compile as a user's run does.
 * `make test` runs `--dist loadgroup`, so that the tests of one `xdist_group` share their
-  session fixtures on one worker; where xdist's grouping was lost, the grouped tests fail
+  session-scoped fixtures on one worker; where xdist's grouping was lost, the grouped tests fail
   saying so (`pytest_collection_modifyitems` below).
 """
 
@@ -37,9 +36,9 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 import gpguided_jax  # noqa: E402
-from gpguided_jax import cli  # noqa: E402
+from gpguided_jax import runtime  # noqa: E402
 
-cli.single_threaded_lapack()
+runtime.single_threaded_lapack()
 gpguided_jax.enable_x64()
 jax.config.update("jax_compilation_cache_dir", _CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
@@ -47,10 +46,9 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LEVEL0_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
-# ... and XLA's older (non-MLIR) fusion emitters, which compile faster still: the tiny GP methods'
-# program in 2.9 s against 4.6 s at level 0 alone and 5.5 s with the defaults (jax 0.9.2, AMD
-# Zen 4). They round some fusions differently, so a script that compares two code paths of the
-# library to a tight tolerance compiles at level 0 alone (`fast_compile="level0"`).
+# ... and XLA's older (non-MLIR) fusion emitters, which compile faster still than level 0 alone.
+# They round some fusions differently, so a script that compares two code paths of the library
+# to a tight tolerance compiles at level 0 alone (`fast_compile="level0"`).
 FAST_COMPILE_XLA_FLAGS = f"{LEVEL0_XLA_FLAGS} --xla_cpu_use_fusion_emitters=false"
 
 
@@ -92,7 +90,7 @@ def run_script(args, *, fast_compile=True, timeout=600, **env):
 
 # The in-process runs of `reproduce` (test_train.py, test_cli.py) share their seeds and chunk
 # length: the GP methods' one program and the fit are compiled once for all of them (in one
-# worker; the other loads them from the session's compilation cache).
+# worker; the other loads them from the test run's compilation cache).
 REPRODUCE_KW = dict(preset="tiny", seeds=[0, 1], chunk_size=2)
 
 # The reference run of the multi-device tests (tests/test_distributed.py, test_train.py's
@@ -137,7 +135,7 @@ def pytest_runtest_setup(item):
 
 
 def pytest_sessionfinish(session, exitstatus):
-    """The controller (not an xdist worker) removes the session's compilation cache at the end."""
+    """The controller (not an xdist worker) removes the test run's compilation cache at the end."""
     if not hasattr(session.config, "workerinput"):
         import shutil
 

@@ -9,7 +9,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import run_script
-from scipy import stats
 
 from gpguided_jax import analysis, controllers, kernels, sparse_gp
 
@@ -74,14 +73,6 @@ def test_gp_surface_equals_predict_at_the_controller_action():
             np.testing.assert_allclose(float(value[i, j]), float(m), rtol=1e-10, atol=1e-12)
             np.testing.assert_allclose(float(var[i, j]), float(v), rtol=1e-10, atol=1e-12)
     assert np.all(np.asarray(var) >= 0) and np.all(np.asarray(var) <= 2.0 + 1e-12)
-
-
-def test_t_interval():
-    x = np.array([[1.0, 2.0], [2.0, 4.0], [3.0, 9.0]])
-    mean, half = analysis.t_interval(x)
-    np.testing.assert_allclose(mean, [2.0, 5.0])
-    np.testing.assert_allclose(half, stats.t.ppf(0.975, 2) * x.std(0, ddof=1) / math.sqrt(3))
-    assert np.isnan(analysis.t_interval(np.array([1.0]))[1])
 
 
 def test_figure_script_runs_end_to_end(tmp_path):

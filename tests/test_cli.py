@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from conftest import REPRODUCE_KW, fast_compile_env
 
-from gpguided_jax import cli
+from gpguided_jax import cli, runtime
 from gpguided_jax import reproduce as R
+from gpguided_jax import train as T
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -24,27 +25,27 @@ def _python(code: str, **env):
 
 def test_lapack_runs_one_thread_unless_the_user_says_otherwise():
     """One OpenBLAS thread; a user's own setting, or an already-loaded LAPACK, is left alone."""
-    assert cli.lapack_threads({}, lapack_loaded=False) == "1"
-    assert cli.lapack_threads({"PATH": "/bin"}, lapack_loaded=False) == "1"
-    assert cli.lapack_threads({}, lapack_loaded=True) is None
-    for name in cli.LAPACK_THREAD_VARIABLES:
-        assert cli.lapack_threads({name: "2"}, lapack_loaded=False) is None
+    assert runtime.lapack_threads({}, lapack_loaded=False) == "1"
+    assert runtime.lapack_threads({"PATH": "/bin"}, lapack_loaded=False) == "1"
+    assert runtime.lapack_threads({}, lapack_loaded=True) is None
+    for name in runtime.LAPACK_THREAD_VARIABLES:
+        assert runtime.lapack_threads({name: "2"}, lapack_loaded=False) is None
 
 
 def test_openblas_runs_one_thread_under_the_cli():
-    """End to end: after `_set_cpu_devices(2)` the OpenBLAS that JAX's LAPACK calls use (SciPy's)
+    """End to end: after `runtime.set_cpu_devices(2)` the OpenBLAS that JAX's LAPACK calls use (SciPy's)
     runs one thread (with one per core it oversubscribed the cores: the fit took twice as long).
     It failed while `stats` imported scipy.stats, which loads OpenBLAS before the variable is set."""
     code = (  # what `cli.main` imports before a command sets the devices, then the devices
         "from gpguided_jax import cli; cli.build_parser()\n"
-        "from gpguided_jax import bench, reproduce, sweep; cli._set_cpu_devices(2)\n"
+        "from gpguided_jax import bench, reproduce, runtime, sweep; runtime.set_cpu_devices(2)\n"
         "import jax, jax.numpy as jnp; jax.jit(jnp.linalg.cholesky)(jnp.eye(3)).block_until_ready()\n"
         "import ctypes, glob, os, scipy\n"
         "libs = glob.glob(os.path.join(os.path.dirname(scipy.__file__) + '.libs', '*openblas*'))\n"
         "print(ctypes.CDLL(libs[0]).scipy_openblas_get_num_threads() if libs else 'none')\n"
-        "print(len(jax.devices()), cli.available_cores())")
+        "print(len(jax.devices()), runtime.available_cores())")
     env = {k: v for k, v in os.environ.items()
-           if k not in cli.LAPACK_THREAD_VARIABLES and k != "XLA_FLAGS"}
+           if k not in runtime.LAPACK_THREAD_VARIABLES and k != "XLA_FLAGS"}
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                           env=env, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -99,7 +100,7 @@ def _check_cli_run(proc, out, dtype, method):
         floats = [f[k] for k in f.files if k.startswith("leaf_") and f[k].dtype.kind == "f"]
     assert floats and all(x.dtype == np.dtype(dtype) for x in floats)
     with np.load(out / "results.npz") as f:
-        for k in R.RECORD_FIELDS:
+        for k in T.RECORD_FIELDS:
             assert np.all(np.isfinite(f[k])), k
     leftovers = [p for p in os.listdir(out) if ".tmp" in p]
     assert not leftovers, leftovers
@@ -172,13 +173,13 @@ def test_a_repeated_run_loads_its_programs_from_the_compile_cache(tmp_path):
     assert warm_entries == entries  # a program compiled again would be written again
     assert warm_loaded == warm_requests == cold_requests  # JAX's own count: every one loaded
     with np.load(tmp_path / "cold" / "results.npz") as a, np.load(tmp_path / "warm" / "results.npz") as b:
-        for k in R.RECORD_FIELDS:
+        for k in T.RECORD_FIELDS:
             np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
 
 def test_compile_cache_counter_counts_jax_monitoring_events():
     """The counts behind the command's last line on the cache, from JAX's event names."""
-    counter = cli.CompileCacheCounter()
+    counter = runtime.CompileCacheCounter()
     for event in ["/jax/compilation_cache/compile_requests_use_cache"] * 5 + [
             "/jax/compilation_cache/cache_hits"] * 2 + ["/jax/compilation_cache/cache_misses",
                                                         "/jax/some_other_event"]:
@@ -187,4 +188,4 @@ def test_compile_cache_counter_counts_jax_monitoring_events():
     line = counter.summary("/c", 1.0)
     assert line.startswith("compilation cache: 2 of 5 program(s) loaded from /c, 3 compiled, 1 of")
     assert "openxla/xla#44565" in line  # programs were loaded: the loader's false alarm explained
-    assert "44565" not in cli.CompileCacheCounter().summary("/c", 1.0)
+    assert "44565" not in runtime.CompileCacheCounter().summary("/c", 1.0)

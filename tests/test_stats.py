@@ -1,5 +1,7 @@
 """Summary statistics (gpguided_jax.stats) against SciPy, the independent reference."""
 
+import math
+
 import numpy as np
 import pytest
 from scipy import stats as sp_stats
@@ -22,6 +24,16 @@ def test_trim_mean_is_scipys_bit_for_bit(shape, axis, cut):
 @pytest.mark.parametrize("q", [0.5, 0.9, 0.975, 0.995])
 def test_t_quantile_is_scipys_bit_for_bit(q, df):
     assert stats.t_quantile(q, df) == sp_stats.t.ppf(q, df)
+
+
+def test_t_interval_is_scipys_bit_for_bit():
+    x = np.array([[1.0, 2.0], [2.0, 4.0], [3.0, 9.0]])
+    mean, half = stats.t_interval(x)
+    np.testing.assert_allclose(mean, [2.0, 5.0])
+    np.testing.assert_array_equal(half, sp_stats.t.ppf(0.975, 2) * x.std(0, ddof=1) / math.sqrt(3))
+    _, half90 = stats.t_interval(x[:, 1], confidence=0.9)
+    assert half90 == sp_stats.t.ppf(0.95, 2) * x[:, 1].std(ddof=1) / math.sqrt(3)
+    assert np.isnan(stats.t_interval(np.array([1.0]))[1])
 
 
 def test_trim_mean_refuses_a_proportion_above_one_half():

@@ -132,21 +132,21 @@ def test_cli_sweep_help(capsys):
 
 
 def test_sweep_runs_equal_the_same_runs_alone(tmp_path):
-    """On a CPU the sweep takes its runs one after another (`reproduce.per_seed_program`, map):
+    """On a CPU the sweep takes its runs one after another (`sharding.per_seed_program`, map):
     a (value, seed) run's records are those of `reproduce.run_method` for that value's config and
     the same fitted kernels, bit for bit, with the method's own program (a sweep compiles one
     method; `gp_program='per_method'`)."""
     import jax
 
     from gpguided_jax import config as C
-    from gpguided_jax import reproduce
+    from gpguided_jax import reproduce, sharding
 
     values, seeds = [0.001, 0.01], [3, 4]
     result = S.run_sweep("lr", values, method="gp_pg", preset="tiny", seeds=seeds,
                          overrides={"num_updates": 4}, chunk_size=2, progress=lambda m: None)
-    mesh = reproduce.make_mesh(1)
+    mesh = sharding.make_mesh(1)
     fit = S.train_lib.make_train(C.preset("tiny", method="gp_pg")).fit_kernel_for_seed
-    priors = jax.device_get(reproduce.per_seed_program(fit, mesh)(reproduce.seed_keys(seeds)))
+    priors = jax.device_get(sharding.per_seed_program(fit, mesh)(sharding.seed_keys(seeds)))
     # the second value's runs alone (the first value's differ, so a mix-up of values would show)
     assert not np.array_equal(result.records["grad_norm"][0], result.records["grad_norm"][1])
     cfg = C.preset("tiny", method="gp_pg", num_updates=4, learning_rate=values[1])

@@ -12,6 +12,7 @@ from conftest import REPRODUCE_KW, TWO_DEVICE_ARGS, run_script
 
 from gpguided_jax import config as C
 from gpguided_jax import reproduce as R
+from gpguided_jax import sharding, summaries
 from gpguided_jax import train as T
 
 KEYS = jax.random.split(jax.random.PRNGKey(0), 2)
@@ -225,35 +226,31 @@ def test_two_host_devices_equal_one(tmp_path, two_device_run):
 
 
 def test_devices_for_seeds_keeps_the_load_and_minimises_padding():
-    from gpguided_jax import reproduce
-
     # (seeds, available devices) -> devices used: ceil(seeds / available) seeds on each
     for seeds, available, used in ((100, 64, 50), (10, 2, 2), (11, 2, 2), (1, 2, 1), (3, 2, 2),
                                    (5, 4, 3), (7, 1, 1)):
-        got = reproduce.devices_for_seeds(seeds, available)
+        got = sharding.devices_for_seeds(seeds, available)
         assert got == used, (seeds, available, got)
         assert -(-seeds // got) == -(-seeds // available)  # the same seeds per device
         assert got * -(-seeds // got) - seeds < -(-seeds // got)  # less than one device's padding
     with pytest.raises(ValueError):
-        reproduce.devices_for_seeds(0, 2)
+        sharding.devices_for_seeds(0, 2)
 
 
 def test_per_seed_program_map_equals_one_seed_alone():
     """The CPU default runs each seed's own program: a batch of 3 gives each seed exactly what it
     gets alone (jit of the unbatched function)."""
-    from gpguided_jax import reproduce
-
     cfg = C.preset("tiny", method="guided_variance")
     train = T.make_train(cfg)
-    mesh = reproduce.make_mesh(1)
-    keys = reproduce.seed_keys([3, 4, 5])
-    assert reproduce.resolve_seed_loop("auto", mesh) == "map"
-    batch = reproduce.per_seed_program(lambda k: train(k)[1].mean_reward, mesh, "map")(keys)
+    mesh = sharding.make_mesh(1)
+    keys = sharding.seed_keys([3, 4, 5])
+    assert sharding.resolve_seed_loop("auto", mesh) == "map"
+    batch = sharding.per_seed_program(lambda k: train(k)[1].mean_reward, mesh, "map")(keys)
     alone = jax.jit(lambda k: train(k)[1].mean_reward)
     for i in range(3):
         np.testing.assert_array_equal(np.asarray(batch)[i], np.asarray(alone(keys[i])))
     with pytest.raises(ValueError, match="seed_loop"):
-        reproduce.resolve_seed_loop("pmap", mesh)
+        sharding.resolve_seed_loop("pmap", mesh)
 
 
 def test_learnable_sigma_is_clipped_to_its_bounds():
@@ -367,12 +364,12 @@ def test_summary_success_columns():
     recs = {"mean_reward": np.zeros((3, 10)),
             "success_rate": np.array([[0.0] * 9 + [1.0], [0.0] * 10, [1.0] * 10]),
             "eval_success_rate": np.array([[0.0] * 9 + [1.0], [0.0] * 10, [0.5] * 10])}
-    row = R.summarise({"m": recs}, success=True)[0]
+    row = summaries.summarise({"m": recs}, success=True)[0]
     assert row["final_success_rate"] == pytest.approx((1.0 + 0.0 + 1.0) / 3)
     assert row["final_eval_success_rate"] == pytest.approx((1.0 + 0.0 + 0.5) / 3)
     assert row["seeds_eval_success_90"] == 1
-    assert "final_success_rate" not in R.summarise({"m": recs})[0]
-    md = R.summary_markdown([row])
+    assert "final_success_rate" not in summaries.summarise({"m": recs})[0]
+    md = summaries.summary_markdown([row])
     assert "success (c(s))" in md and "1/3" in md
 
 
@@ -476,7 +473,7 @@ def test_a_method_alone_equals_it_among_the_others(tmp_path):
     assert len(R._FIT_PROGRAMS) == 1 and next(iter(R._FIT_PROGRAMS.values()))._cache_size() == 1
     every, alone = (np.load(tmp_path / d / "results.npz") for d in ("all", "alone"))
     assert list(every["methods"]) == list(T.GP_METHODS)
-    for k in R.RECORD_FIELDS:
+    for k in T.RECORD_FIELDS:
         np.testing.assert_array_equal(alone[k][0], every[k][1], err_msg=k)
     with pytest.raises(ValueError, match="gp_program"):
         R.reproduce(out_dir=str(tmp_path / "bad"), methods=["gp_pg"], gp_program="union", **kw)

@@ -1,0 +1,213 @@
+"""Summaries of finished runs: final performance, failing seeds, probability of improvement.
+
+For records of shape (seeds, updates) per method (a `reproduce` run's results.npz, a sweep's
+runs), NumPy, not traced:
+
+* `final_performance`: per seed, the mean reward per step over the last 10% of updates;
+* `summarise`: per method, initial and final performance (mean with its 95% t-interval, IQM with
+  its stratified-bootstrap interval), updates to 90% of the way (`updates_to_90pct`), and the
+  seeds that failed, by cause (`failing_seeds`, `FAILURE_CAUSES`; the level of doing nothing is
+  `zero_torque_reward`);
+* `compare`: the probability of improvement P(X > Y) of the `COMPARISONS` pairs (rliable);
+* `write_csv`, `summary_markdown`, `comparisons_markdown`: summary.csv / comparisons.csv and
+  their Markdown tables.
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+import io
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gpguided_jax import checkpoints, pendulum
+from gpguided_jax import config as config_lib
+from gpguided_jax import stats as stats_lib
+from gpguided_jax import train as train_lib
+
+# Pairs (x, y) for which the probability that x beats y is reported (rliable).
+COMPARISONS = (
+    ("gp_pg", "reinforce"),
+    ("guided_variance", "reinforce"),
+    ("guided_direction", "reinforce"),
+    ("guided_variance", "gp_pg"),
+    ("guided_direction", "gp_pg"),
+)
+FAILURE_CAUSES = ("nonfinite_grad", "gp_guard", "std_at_bound", "below_zero_torque", "nan_record")
+
+
+def final_performance(mean_reward: np.ndarray) -> np.ndarray:
+    """Per seed: the mean reward per step over the last 10% of updates. (..., updates) -> (...)."""
+    tail = max(1, int(round(0.1 * mean_reward.shape[-1])))
+    return mean_reward[..., -tail:].mean(axis=-1)
+
+
+def updates_to_90pct(curves: np.ndarray) -> np.ndarray:
+    """Per seed: the first update at which a 10-update moving average has covered 90% of the way
+    from its start to the seed's final performance (num_updates if never)."""
+    n_updates = curves.shape[-1]
+    final = final_performance(curves)
+    w = min(10, n_updates)
+    smooth = np.stack([np.convolve(c, np.ones(w) / w, mode="valid") for c in curves])
+    start = smooth[:, :1]
+    target = start + 0.9 * (final[:, None] - start)
+    improving = final[:, None] >= start
+    reached = np.where(improving, smooth >= target, smooth <= target)
+    return np.where(reached.any(axis=1), reached.argmax(axis=1) + w, n_updates)
+
+
+def zero_torque_reward(cfg: config_lib.TrainConfig, num_episodes: int = 2000, seed: int = 12345) -> float:
+    """Mean reward per step of the zero-torque policy on the preset's task (its start states and
+    episode length): the level below which a learned policy is worse than doing nothing."""
+    keys = jax.random.split(jax.random.PRNGKey(seed), num_episodes)
+    return float(jnp.mean(_zero_torque_episode_means(keys, cfg.pendulum, cfg.episode_length)))
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _zero_torque_episode_means(keys, params: pendulum.PendulumParams, num_steps: int):
+    """Per key, one zero-torque episode's mean reward per step. Compiled once per episode length,
+    dtype and number of keys (the pendulum's parameters are traced): a process that summarises
+    several runs, or the tests, do not compile it again for each."""
+    def episode(key):
+        traj = pendulum.rollout(key, params, lambda k, s: jnp.zeros((), s.dtype), num_steps)
+        return jnp.mean(traj.rewards)
+
+    return jax.vmap(episode)(keys)
+
+
+def holds_swing_up(cfg: config_lib.TrainConfig) -> bool:
+    """Whether the task's episodes last long enough to hold a swing-up (`success_hold_time`):
+    then its summary has the success columns (`summarise(..., success=True)`)."""
+    return cfg.episode_length * float(np.asarray(cfg.pendulum.dt)) >= cfg.success_hold_time
+
+
+def failing_seeds(records: dict, zero_torque: float) -> dict[str, np.ndarray]:
+    """Per cause, a (seeds,) bool array of the seeds that failed (records of one method):
+
+    * nonfinite_grad: any gradient estimate was not finite;
+    * gp_guard: the GP health check rejected any episode's update;
+    * std_at_bound: the learnable sigma was at min_std or max_std after any update;
+    * below_zero_torque: the final performance is below the zero-torque policy's;
+    * nan_record: any record is NaN;
+    * any: any of these.
+    """
+    out = {
+        "nonfinite_grad": np.any(records["nonfinite_grad"] > 0, axis=-1),
+        "gp_guard": np.any(records["gp_guard"] > 0, axis=-1),
+        "std_at_bound": np.any(records["std_at_bound"] > 0, axis=-1),
+        "below_zero_torque": final_performance(records["mean_reward"]) < zero_torque,
+        "nan_record": np.any(np.stack([np.isnan(np.asarray(records[k], float)).any(-1)
+                                       for k in train_lib.RECORD_FIELDS]), axis=0),
+    }
+    out["any"] = np.any(np.stack(list(out.values())), axis=0)
+    return out
+
+
+def summarise(records_by_method: dict[str, dict], zero_torque: float | None = None,
+              reps: int = stats_lib.DEFAULT_REPS, success: bool = False) -> list[dict]:
+    """One row per method: initial and final performance (mean reward per step over the first and
+    last 10% of updates), the final's mean with its 95% t-interval and its IQM with the 95%
+    stratified-bootstrap interval over seeds, the mean updates to 90%, and the failing seeds.
+
+    Args:
+      records_by_method: method -> dict field -> (seeds, updates); at least mean_reward (the
+        failure counts need the other `UpdateRecord` fields too).
+      zero_torque: the zero-torque policy's reward per step (for `below_zero_torque`); None skips
+        the failure counts.
+      success: add the swing-up columns (records success_rate and eval_success_rate): the final
+        success rate (last 10% of updates) of the exploring episodes and of the deterministic
+        controller c(s), mean over seeds, and the seeds whose final deterministic success rate is
+        at least 0.9.
+    """
+    rows = []
+    for method, rec in records_by_method.items():
+        curves = np.asarray(rec["mean_reward"], float)
+        final = final_performance(curves)
+        n = len(final)
+        mean, half = stats_lib.t_interval(final)
+        lo, hi = stats_lib.bootstrap_ci(final, reps=reps) if n > 1 else (np.nan, np.nan)
+        tail = max(1, int(round(0.1 * curves.shape[-1])))
+        row = dict(
+            method=method,
+            seeds=n,
+            initial_mean=float(curves[:, :tail].mean()),
+            final_mean=float(mean),
+            ci95_low=float(mean - half),
+            ci95_high=float(mean + half),
+            final_iqm=stats_lib.iqm(final),
+            iqm_ci95_low=lo,
+            iqm_ci95_high=hi,
+            updates_to_90pct=float(np.mean(updates_to_90pct(curves))),
+        )
+        if success:
+            explore = final_performance(np.asarray(rec["success_rate"], float))
+            greedy = final_performance(np.asarray(rec["eval_success_rate"], float))
+            row["final_success_rate"] = float(explore.mean())
+            row["final_eval_success_rate"] = float(greedy.mean())
+            row["seeds_eval_success_90"] = int(np.sum(greedy >= 0.9))
+        if zero_torque is not None:
+            fails = failing_seeds(rec, zero_torque)
+            row["failing_seeds"] = int(fails["any"].sum())
+            row.update({f"fail_{c}": int(fails[c].sum()) for c in FAILURE_CAUSES})
+            row["zero_torque_reward"] = zero_torque
+        rows.append(row)
+    return rows
+
+
+def compare(records_by_method: dict[str, dict], pairs=COMPARISONS,
+            reps: int = stats_lib.DEFAULT_REPS) -> list[dict]:
+    """Probability of improvement P(X > Y) of final performance, with its 95% bootstrap interval,
+    for the pairs whose methods were both run."""
+    rows = []
+    for x, y in pairs:
+        if x in records_by_method and y in records_by_method:
+            fx = final_performance(np.asarray(records_by_method[x]["mean_reward"], float))
+            fy = final_performance(np.asarray(records_by_method[y]["mean_reward"], float))
+            lo, hi = stats_lib.probability_of_improvement_ci(fx, fy, reps=reps)
+            rows.append(dict(x=x, y=y, p_improvement=stats_lib.probability_of_improvement(fx, fy),
+                             ci95_low=lo, ci95_high=hi))
+    return rows
+
+
+def write_csv(rows: list[dict], path: str) -> None:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    checkpoints.atomic_write_text(path, buf.getvalue())
+
+
+def summary_markdown(rows: list[dict]) -> str:
+    succ = bool(rows) and "final_success_rate" in rows[0]
+    head = ("| method | initial | final (mean) | 95% CI | final (IQM) | 95% CI (bootstrap) | "
+            "updates to 90% | failing seeds |")
+    rule = "|---|---|---|---|---|---|---|---|"
+    if succ:
+        head += " success (exploring) | success (c(s)) | seeds >= 90% |"
+        rule += "---|---|---|"
+    lines = [head, rule]
+    for r in rows:
+        fails = r.get("failing_seeds", "")
+        if fails != "":
+            causes = ", ".join(f"{c} {r['fail_' + c]}" for c in FAILURE_CAUSES if r["fail_" + c])
+            fails = f"{fails}/{r['seeds']}" + (f" ({causes})" if causes else "")
+        line = (f"| {r['method']} | {r['initial_mean']:.3f} | {r['final_mean']:.3f} | "
+                f"[{r['ci95_low']:.3f}, {r['ci95_high']:.3f}] | {r['final_iqm']:.3f} | "
+                f"[{r['iqm_ci95_low']:.3f}, {r['iqm_ci95_high']:.3f}] | "
+                f"{r['updates_to_90pct']:.0f} | {fails} |")
+        if succ:
+            line += (f" {r['final_success_rate']:.2f} | {r['final_eval_success_rate']:.2f} | "
+                     f"{r['seeds_eval_success_90']}/{r['seeds']} |")
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def comparisons_markdown(rows: list[dict]) -> str:
+    lines = ["| X | Y | P(X > Y) | 95% CI (bootstrap) |", "|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['x']} | {r['y']} | {r['p_improvement']:.2f} | "
+                     f"[{r['ci95_low']:.2f}, {r['ci95_high']:.2f}] |")
+    return "\n".join(lines)
