@@ -1,4 +1,4 @@
-"""Seed scaling of the paper run on this machine: 10, 30, 100 and 300 seeds.
+"""Seed scaling of the paper run on the host it runs on: 10, 30, 100 and 300 seeds.
 
 For each number of seeds S (in its own process, so that its peak memory can be read), float64:
 the hyperparameter fit of S seeds (compile and run), then for every method all 400 updates in

@@ -18,7 +18,7 @@ Sections (each a dict of figures; times in seconds, medians with min and max ove
   compilation cache ("cold") and again with the cache it filled ("warm").
 
 `python -m gpguided_jax.cli bench --out docs/results/bench.json` writes the report that the
-README's benchmark table is generated from (`experiments/readme_tables.py`).
+benchmark table of docs/benchmarks.md is generated from (`experiments/docs_tables.py`).
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ def _timed(fn, repeats):
 
 def timed_in_turn(programs: dict, args: dict, repeats: int) -> dict:
     """Wall seconds of each program over `repeats` rounds, the programs run in turn (A B A B ...)
-    so that their ratios hold when the machine's speed drifts. `args[name]` is the tuple of
+    so that their ratios hold when the CPU's speed drifts. `args[name]` is the tuple of
     arguments of `programs[name]`. Returns {name: [seconds, ...]}."""
     times = {k: [] for k in programs}
     for _ in range(repeats):
@@ -377,7 +377,7 @@ def run(*, repeats: int = 3, seeds: int = 10, numpy_updates: int = 50, quick: bo
     if paper_run:
         progress("bench: the whole reproduce command, cold and warm")
         # quick (the tests): the command timed once, with REINFORCE alone, whose compile is the
-        # shortest (the four methods' made the cold and warm runs 27 s of the quick bench's 68 s)
+        # shortest (with the four methods the cold and warm runs would take most of the time)
         report["paper_run"] = bench_paper_run(
             1 if quick else repeats, 2 if quick else seeds, preset,
             ("reinforce",) if quick else config_lib.METHODS)

@@ -1,4 +1,5 @@
-"""Training configuration: one frozen dataclass, static fields apart from traced ones (SPEC §5).
+"""Training configuration: one frozen dataclass, static fields apart from traced ones, and the
+presets (design: docs/design.md#algorithm-1, docs/design.md#presets).
 
 `TrainConfig` is a pytree: its *traced* fields (learning rate, lambda, beta, sigma_e, physics, ...)
 are leaves, its *static* fields (sizes, lengths, method, controller, ...) are metadata. So
@@ -67,11 +68,11 @@ class TrainConfig:
         (`hyperfit.fit`).
       hyperfit_optimizer: 'adam' (default: 100 steps) or 'lbfgs' (15 iterations reach a higher
         likelihood in a quarter of the time, but on the paper preset they change
-        guided_direction's results and make them differ between float32 and float64: README,
-        "Deviations").
+        guided_direction's results and make them differ between float32 and float64; design:
+        docs/design.md#decisions).
       hyperfit_subset: the marginal likelihood is that of a random subset of this many of the
-        collected pairs (a 2000-point Cholesky per Adam step costs ~1 s on a 2-core CPU; 500
-        points cost 1/64 of it). Set it >= hyperfit_samples to use every pair.
+        collected pairs (a Cholesky factorisation per optimiser step: one of 500 points costs
+        1/64 of one of 2000). Set it >= hyperfit_samples to use every pair.
       num_candidates: K, candidate actions of the Gibbs policy.
       controller: 'linear' or 'rbf'.
       age_fn: 'exp' (eq. 14) or 'logit' (eq. 15).
@@ -296,7 +297,7 @@ PRESETS: dict[str, dict] = {
     # 4.5 s episodes (900 steps), success = within 0.3 rad of upright for the whole last second.
     # The energy-pumping controller needs ~2.4 s from rest and succeeds from every one of 100
     # start states, and so does the RBF controller fitted to it (tests/test_swingup.py). The
-    # learning rate, noise level, lambda and beta are set by the tuning of issue 11
+    # learning rate, noise level, lambda and beta are set by the swing-up tuning
     # (docs/tuning_swingup.md).
     "swingup": dict(
         num_updates=100,  # 270,000 environment steps

@@ -1,4 +1,5 @@
-"""Deterministic controllers c(s; theta_c) = u_max * tanh(theta_c^T psi(s)) (paper §II, SPEC §3).
+"""Deterministic controllers c(s; theta_c) = u_max * tanh(theta_c^T psi(s)) (paper §II; design:
+docs/design.md#policies).
 
 A controller is linear in its parameters before the squashing, so its parameter pytree and its
 feature map psi(s) have the same structure, and
@@ -104,7 +105,7 @@ def _make_controller(features_fn, zeros_fn, u_max: float) -> Controller:
 
 
 def linear_controller(u_max: float = 5.0) -> Controller:
-    """c(s) = u_max tanh(w^T (sin phi, cos phi, omega, 1)) (SPEC §3).
+    """c(s) = u_max tanh(w^T (sin phi, cos phi, omega, 1)) (design: docs/design.md#policies).
 
     Args:
       u_max: torque limit (the pendulum clips to [-5, 5] N m).
@@ -147,7 +148,7 @@ def rbf_controller(
     angle_width: float | None = None,
     velocity_width: float | None = None,
 ) -> Controller:
-    """RBF network c(s) = u_max tanh(sum_i w_i exp(-d_i(s)^2 / 2) + b) (SPEC §3).
+    """RBF network c(s) = u_max tanh(sum_i w_i exp(-d_i(s)^2 / 2) + b) (design: docs/design.md#policies).
 
     The state is embedded periodically as y(s) = (sin phi, cos phi, omega), the centres mu_i are
     the embeddings of an `rbf_grid`, and

@@ -1,4 +1,5 @@
-"""Policy-gradient estimators over a batch of episodes (eq. 4, 9; SPEC §4) and the ascent step.
+"""Policy-gradient estimators over a batch of episodes (eq. 4, 9) and the ascent step
+(design: docs/design.md#estimators).
 
 Scores are the per-step hand-derived gradients grad_theta log pi(a_t | s_t) of
 `gpguided_jax.policies`, stacked as a pytree whose leaves have leading (episodes, steps) axes,
@@ -25,7 +26,8 @@ def discounted_returns(r_t: jax.Array, discount) -> jax.Array:
     """Returns-to-go of one episode: Ret_t = sum_{i=0}^{H-1-t} gamma^i R_{t+i}.
 
     The sum stops at the end of the episode (no bootstrap). The paper prints the upper limit as
-    H - t, one past the last reward of an episode indexed 0..H-1; SPEC §2 fixes H - 1 - t.
+    H - t, one past the last reward of an episode indexed 0..H-1; the sum ends at H - 1 - t
+    (design: docs/design.md#gp-model).
 
     Args:
       r_t: (H,) rewards R_0 .. R_{H-1}.

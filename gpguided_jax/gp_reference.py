@@ -1,7 +1,8 @@
-"""Plain NumPy reference of the sparse online GP (SPEC §2): the test oracle and benchmark baseline.
+"""Plain NumPy reference of the sparse online GP: the test oracle and benchmark baseline
+(design: docs/design.md#sparse-gp).
 
 One point at a time, variable-size arrays, no masks, no vectorisation over seeds. It follows the
-SPEC §2 equations of Csato & Opper literally, in their own parametrisation: the inverse Gram matrix
+equations of Csato & Opper literally, in their own parametrisation: the inverse Gram matrix
 Q = K_B^{-1} and the covariance correction C, each updated by rank-one terms (concatenate a row and
 column on insertion, ``np.delete`` on deletion). So it is independent of the square-root,
 fixed-slot formulation of `gpguided_jax.sparse_gp`, and run in ``np.longdouble`` (80-bit on x86)
@@ -181,7 +182,7 @@ class OnlineGP:
         return kl + self.age_penalty * g
 
     def delete(self, j: int) -> None:
-        """KL-optimal removal of basis vector j (SPEC §2)."""
+        """KL-optimal removal of basis vector j (design: docs/design.md#sparse-gp)."""
         a_star = self.alpha[j]
         q_star = self.Q[j, j]
         qc_star = self.Q[j, j] + self.C[j, j]

@@ -1,4 +1,5 @@
-"""Type-II maximum likelihood for the kernel hyperparameters (SPEC §2, paper §VI).
+"""Type-II maximum likelihood for the kernel hyperparameters (paper §VI; design:
+docs/design.md#gp-model).
 
 The exact GP negative log marginal likelihood of N pairs (about 2000 in the paper's protocol) under
 the zero-mean ARD squared-exponential prior with Gaussian noise,
@@ -11,12 +12,10 @@ with L the Cholesky factor of K + sigma_n^2 I, is minimised over the log-paramet
 a backtracking (Armijo) line search, on a smooth box parametrisation: each log-parameter is
 lo + (hi - lo) sigmoid(u), u unconstrained. The line search needs only the likelihood (one
 Cholesky) at trial points and the closed-form gradient at accepted ones, so 15 iterations cost
-about a quarter of the 100 Adam steps used before and end at a higher likelihood (measured on the
-paper preset's data, seeds 100-109: every seed's NLML on all 2000 pairs lower, by 0.008 nats per
-pair on average; `experiments/bench_hyperfit.py`, docs/results/hyperfit.json). Adam
-(`optimizer="adam"`) remains available, and training uses it by default
-(`TrainConfig.hyperfit_optimizer`, 100 steps): on the paper preset the L-BFGS fit changed
-guided_direction's results and made them dtype-dependent (docs/results/lbfgs_fit/README.md).
+a fraction of 100 Adam steps and end at a higher likelihood. Adam (`optimizer="adam"`) remains
+available, and training uses it by default (`TrainConfig.hyperfit_optimizer`, 100 steps): on the
+paper preset the L-BFGS fit changes guided_direction's results and makes them dtype-dependent
+(design: docs/design.md#decisions).
 
 The prior mean is zero, as in the online GP (`sparse_gp`), which has no mean function: the fitted
 signal variance therefore also absorbs the targets' offset. Centre the targets first if the online
@@ -151,13 +150,12 @@ def nlml_and_grad(log_hyper: LogParams, xs: jax.Array, ys: jax.Array, jitter: fl
 # recursively down to blocks of at most `_INVERSE_BLOCK` rows (inverted by a triangular solve), and
 # A^{-1} = X^T X is formed block by block; no product touches the zero triangle. That is about
 # 4/3 N^3 flops against 3 N^3 for a triangular solve with the identity and a full product X^T X,
-# and they run at the matrix-product rate: the paper preset's fit is about twice as fast
-# (`gpguided bench`, docs/results/bench.json). The gradient reads A^{-1} block by block without
+# and they run at the matrix-product rate (design: docs/design.md#decisions). The gradient reads A^{-1} block by block without
 # assembling it (`_hadamard_times`). The accuracy is that of the triangular solve it replaced (both
 # are set by the conditioning of A; tests/test_hyperfit.py checks it against an 80-bit inverse).
 # ------------------------------------------------------------------------------------------------
 
-_INVERSE_BLOCK = 128  # fewer levels compile faster (64: +0.9 s for the paper fit), at the same speed
+_INVERSE_BLOCK = 128  # fewer recursion levels compile faster than smaller blocks, and run as fast
 
 
 def _lower_inverse(L):

@@ -1,4 +1,4 @@
-"""ARD squared-exponential kernel and the state-action feature map (SPEC §2).
+"""ARD squared-exponential kernel and the state-action feature map (design: docs/design.md#gp-model).
 
 Written for one pair of points and vmapped twice for Gram matrices, as in tinygp.
 """
@@ -56,7 +56,8 @@ def gram(xs1: jax.Array, xs2: jax.Array, hyper: KernelParams) -> jax.Array:
 
 
 def state_action_features(state: jax.Array, action: jax.Array) -> jax.Array:
-    """x = (sin phi, cos phi, omega, a), so that the angle enters periodically (SPEC §2).
+    """x = (sin phi, cos phi, omega, a), so that the angle enters periodically
+    (design: docs/design.md#gp-model).
 
     Args:
       state: (2,) [phi, omega].

@@ -1,4 +1,5 @@
-"""The torque-limited pendulum of the paper (§VI, eq. 23-24) as pure JAX functions (SPEC §1).
+"""The torque-limited pendulum of the paper (§VI, eq. 23-24) as pure JAX functions
+(design: docs/design.md#pendulum).
 
 State s = [phi, omega] (shape (2,)): phi is measured from the hanging rest position and wrapped to
 [0, 2*pi); the target is upright, phi = pi. Dynamics with torque u and viscous friction b:

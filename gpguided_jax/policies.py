@@ -1,5 +1,6 @@
 """Stochastic policies around a controller: fixed noise (eq. 1), GP-guided exploratory noise
-(eq. 16-19) and the Gibbs policy over GP-scored candidate actions (eq. 20-22). SPEC §3.
+(eq. 16-19) and the Gibbs policy over GP-scored candidate actions (eq. 20-22).
+Design: docs/design.md#policies.
 
 All three share one calling convention, so that a training loop can pick one by a static name
 (`make_policy`) and run it inside `lax.scan`:
@@ -45,7 +46,7 @@ _LOG_2PI = 1.8378770664093453  # log(2 pi)
 
 
 class PolicyParams(NamedTuple):
-    """Policy parameters theta = (theta_c, log sigma) (SPEC §3).
+    """Policy parameters theta = (theta_c, log sigma) (design: docs/design.md#policies).
 
     Attributes:
       controller: pytree of controller parameters theta_c (see gpguided_jax.controllers).
@@ -214,8 +215,8 @@ def gp_latent_variance_and_grad(gp, kernel, state, action):
     action_lengthscale = kernel.lengthscales[-1]
     dk = -k * (x[-1] - gp.basis_vectors[:, -1]) / (action_lengthscale * action_lengthscale)
     T, Z = gp.gram_inv_root, gp.alpha_cov_root
-    # four matrix-vector products: T [k, dk] as one 2-column product, or as rows times T^T, ran
-    # 2x slower inside the training loop on XLA:CPU (measured 2026-12-02)
+    # four matrix-vector products: XLA:CPU runs T [k, dk] as one 2-column product, or as rows
+    # times T^T, slower inside the training loop (design: docs/design.md#decisions)
     w, z = T @ k, Z @ k
     w_d, z_d = T @ dk, Z @ dk
     gamma = kxx - w @ w
@@ -354,7 +355,8 @@ def fixed_noise_policy(controller: controllers_lib.Controller) -> Policy:
 def guided_variance_policy(controller: controllers_lib.Controller) -> Policy:
     """a ~ N(c(s), sigma^2_GP(s)), sigma^2_GP = max(lambda_v sigma^2(s, c(s)), floor) (eq. 16).
 
-    Score (eq. 17, with the factor 1/2 that the printed equation lacks, SPEC §3):
+    Score (eq. 17, with the factor 1/2 that the printed equation lacks; design:
+    docs/design.md#deviations):
       d log pi/d theta_c = (a - c)/sigma^2_GP dc/dtheta_c
                            + ((a - c)^2 - sigma^2_GP)/(2 sigma^4_GP) grad sigma^2_GP,
       grad sigma^2_GP = lambda_v (2 k^T C dk/da*) dc/dtheta_c  (eq. 18-19, C constant; 0 on the
@@ -424,7 +426,7 @@ def guided_variance_policy(controller: controllers_lib.Controller) -> Policy:
 
 
 def normalise_q(q_values: jax.Array) -> jax.Array:
-    """Min-max normalisation of the candidates' Q_GP to [0, 1] (SPEC §3).
+    """Min-max normalisation of the candidates' Q_GP to [0, 1] (design: docs/design.md#policies).
 
     Rewards are negative, and with raw Q the energy Q exp(-d^2/2 sigma_e^2) would prefer actions
     far from c(s); the paper's Fig. 3 shows Q in [0, 1]. Guard: when all Q are equal (range at
@@ -466,7 +468,7 @@ def gibbs_select(key, energy, inverse_temperature):
 
 
 def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 32) -> Policy:
-    """Gibbs policy over K GP-scored candidate actions (eq. 20-22, SPEC §3).
+    """Gibbs policy over K GP-scored candidate actions (eq. 20-22; design: docs/design.md#policies).
 
     Sampling: a_j ~ N(c(s), sigma^2_cand), j = 1..K; Q~_j = min-max normalised Q_GP(s, a_j);
     E_j = Q~_j exp(-(a_j - c)^2/(2 sigma_e^2)); pi = softmax(beta E); J ~ pi; action a_J.

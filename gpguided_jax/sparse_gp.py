@@ -1,4 +1,5 @@
-"""Sparse online Gaussian process (Csato & Opper) in square-root form, on fixed-size buffers (SPEC §2).
+"""Sparse online Gaussian process (Csato & Opper) in square-root form, on fixed-size buffers
+(design: docs/design.md#sparse-gp).
 
 The model (paper eq. 5-8, 10-15)
 --------------------------------
@@ -33,7 +34,7 @@ One update with a pair (x, y), in the paper's named steps:
    coefficients of the projection of x onto the BVs).
 2. insert (if x is novel, see below): x goes into a free slot j. In the new BV set,
    T gains the row t = (e_j - e)/sqrt(gamma) (then T^T T is the inverse of the bordered Gram
-   matrix, Q_new = [[Q, 0], [0, 0]] + [e; -1][e; -1]^T / gamma, as in SPEC §2), and so does Z:
+   matrix, Q_new = [[Q, 0], [0, 0]] + [e; -1][e; -1]^T / gamma, Csato-Opper's), and so does Z:
    the value of f at x is not yet observed, so Cov[alpha] grows by exactly the same t t^T
    (C is padded with zeros in Csato-Opper). The kernel vector of x becomes k + k** e_j.
 3. observe (eq. 7-8): the GP takes in y = f(x) + noise, f(x) ~ k^T alpha. This is a Bayesian
@@ -57,8 +58,8 @@ One update with a pair (x, y), in the paper's named steps:
    conditioning leaves X with a null direction, H turns it into row j, which is freed for the next
    insertion. This is an O(M^2) rank-one write, orthogonal, so it cannot amplify rounding errors.
 
-Novelty and conditioning (what keeps K_B well conditioned, SPEC §2 "Stability")
-----------------------------------------------------------------------------
+Novelty and conditioning (what keeps K_B well conditioned; design: docs/design.md#sparse-gp)
+-----------------------------------------------------------------------------------------
 x joins the set only if gamma >= gamma_min, where
     gamma_min = max(novelty_tol * k**, resolution(dtype) * k**, noise_novelty * sigma_n^2):
 a relative tolerance; the dtype's resolution (1e-6 in float64, 1e-3 in float32: gamma is a
@@ -79,12 +80,10 @@ state unchanged. Everything is branch-free (`jnp.where`), jit- and vmap-able, O(
 Inside `update_batch`'s loops the buffers are widened to a multiple of 8 slots (`padded_slots`:
 104 for M = 100) and narrowed again on the way out. The extra slots are inactive and never
 written: the first free slot, where an insertion goes, is always among the first M + 1 (at most M
-are active before it). The state the caller sees has M + 1 slots. Measured on the CPU, in turn:
-with 104 slots the GP update alone is about 14% faster in float64 and 12% in float32 than with
-101, although the buffers hold 6% more numbers (`experiments/bench_slot_padding.py`,
-docs/results/slot_padding.json; in a scratch run 112 slots were not faster than 104;
-presumably rows whose length is a multiple of the vector width keep XLA:CPU's loops out of their
-remainder code). The extra zeros change only the rounding of some sums, so `update_batch` equals
+are active before it). The state the caller sees has M + 1 slots. The GP update is faster so on
+the CPU, although the buffers hold more numbers: rows whose length is a multiple of the vector
+width presumably keep XLA:CPU's loops out of their remainder code (design:
+docs/design.md#decisions). The extra zeros change only the rounding of some sums, so `update_batch` equals
 `update_with_info` applied pair by pair (which does not pad) in its decisions and to rounding in
 its numbers. Its two loops equal each other bit for bit on a stream taken in alone; inside a larger
 program XLA may compile their padded surroundings differently, and they then agree to rounding.
@@ -659,7 +658,8 @@ def update_with_info(
     logit_eps=1e-3,
     valid=True,
 ):
-    """One pair (x, y): project, insert if novel, observe, score, delete (SPEC §2), and what it did.
+    """One pair (x, y): project, insert if novel, observe, score, delete, and what it did
+    (design: docs/design.md#sparse-gp).
 
     x is novel if gamma >= gamma_min (`novelty_threshold`) and inserting it would leave at most
     one existing BV with a leave-one-out residual below collapse_fraction * gamma_min. After the

@@ -41,7 +41,8 @@ def trim_mean(a, proportiontocut: float, axis: int = 0) -> np.ndarray:
 
 def t_quantile(q, df):
     """``scipy.stats.t.ppf(q, df)``: the same function (`scipy.special.stdtrit`, which scipy.stats
-    calls), the same bits, without importing scipy.stats (0.4 s of every summary's start-up)."""
+    calls), the same bits, without importing scipy.stats (slow to import, and it loads OpenBLAS,
+    see `trim_mean`)."""
     from scipy import special
 
     return special.stdtrit(df, q)

@@ -34,8 +34,8 @@ def test_lapack_runs_one_thread_unless_the_user_says_otherwise():
 
 def test_openblas_runs_one_thread_under_the_cli():
     """End to end: after `runtime.set_cpu_devices(2)` the OpenBLAS that JAX's LAPACK calls use (SciPy's)
-    runs one thread (with one per core it oversubscribed the cores: the fit took twice as long).
-    It failed while `stats` imported scipy.stats, which loads OpenBLAS before the variable is set."""
+    runs one thread (with one per core it oversubscribes the cores). It fails if a module that the
+    command line imports first imports scipy.stats, which loads OpenBLAS before the variable is set."""
     code = (  # what `cli.main` imports before a command sets the devices, then the devices
         "from gpguided_jax import cli; cli.build_parser()\n"
         "from gpguided_jax import bench, reproduce, runtime, sweep; runtime.set_cpu_devices(2)\n"
@@ -143,7 +143,7 @@ def test_corrupt_checkpoint_and_kernels_are_set_aside(tmp_path):
 
 def test_a_repeated_run_loads_its_programs_from_the_compile_cache(tmp_path):
     """The persistent compilation cache on this CPU and jax: the second process loads what the
-    first compiled (it crashed on loading a larger program, experiments/compile_cache_check.py),
+    first compiled (loading a much larger program crashes; design: docs/design.md#decisions),
     and its results are the same bit for bit."""
     cache = tmp_path / "cache"
 
@@ -153,9 +153,9 @@ def test_a_repeated_run_loads_its_programs_from_the_compile_cache(tmp_path):
              "2", "--methods", "reinforce", "guided_direction", "--chunk-size", "3", "--out",
              str(tmp_path / name), "--compile-cache", str(cache)],
             capture_output=True, text=True, timeout=600, cwd=ROOT,
-            # the command's own default caches every program (with JAX's, those that took over
-            # 1 s to compile, one that took 0.9 s in the first run and 1.1 s in the second was
-            # written only then)
+            # the command's own default caches every program (with JAX's, only those that take
+            # over 1 s to compile: a program near that threshold can be written by one run and
+            # not the other)
             env={k: v for k, v in os.environ.items()
                  if k != "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"})
         _check_cli_run(proc, tmp_path / name, "float64", "guided_direction")  # the float64 CLI run

@@ -45,7 +45,7 @@ def test_two_processes_equal_one_process_and_resume_from_a_common_checkpoint(tmp
     1 loses its latest checkpoint (as if killed between the two processes' writes). The resumed
     run agrees on the checkpoint both hold and ends with the one-process run's results.npz, bit for
     bit, which process 0 alone reports and writes. (One test for both: each launch of two
-    processes costs ~20 s.)"""
+    processes is slow.)"""
     out = tmp_path / "run"
     first = _two_processes(out, "--max-chunks", "2")
     assert all("stopped early" in stdout for stdout, _ in first)

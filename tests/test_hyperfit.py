@@ -1,4 +1,4 @@
-"""Tests of the exact GP marginal likelihood and its optax minimisation (SPEC §2)."""
+"""Tests of the exact GP marginal likelihood and its optax minimisation (design: docs/design.md#gp-model)."""
 
 import jax
 

@@ -1,4 +1,5 @@
-"""Tests of the ARD squared-exponential kernel and the state-action features (SPEC §2)."""
+"""Tests of the ARD squared-exponential kernel and the state-action features
+(design: docs/design.md#gp-model)."""
 
 import jax
 

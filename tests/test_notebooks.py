@@ -5,11 +5,11 @@ and run top to bottom by nbclient in a fresh kernel with GPGUIDED_NOTEBOOK_QUICK
 size knob) and the Agg matplotlib backend; any cell that raises fails the test.
 
 The kernel is the Python running pytest: a kernelspec pointing at `sys.executable` is written to a
-temporary directory and looked up there, so no `ipykernel install` is needed on a fresh machine.
+temporary directory and looked up there, so no `ipykernel install` is needed in a fresh environment.
 
 At the reduced size the notebooks spend most of their time compiling, so the kernel runs XLA's CPU
-backend at optimisation level 0 (`conftest.fast_compile_env`; compiles about 2-3x faster; the tiny
-runs do not notice the slower code). This is for the test only: the notebooks themselves run with
+backend at optimisation level 0 (`conftest.fast_compile_env`; it compiles much faster, and the
+tiny runs do not notice the slower code). This is for the test only: the notebooks themselves run with
 JAX's defaults.
 """
 
@@ -29,7 +29,7 @@ from jupyter_client.manager import KernelManager  # noqa: E402
 NOTEBOOK_DIR = pathlib.Path(__file__).resolve().parent.parent / "notebooks"
 NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("[0-9][0-9]_*.py"))
 KERNEL_NAME = "gpguided-notebook-test"
-CELL_TIMEOUT_S = 300  # generous: the tests may run in parallel on a loaded 2-core machine
+CELL_TIMEOUT_S = 300  # generous: the tests may run in parallel on a loaded CPU
 
 
 @pytest.fixture(scope="module")

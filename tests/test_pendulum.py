@@ -91,7 +91,7 @@ def test_angle_wrapping():
     assert float(P.wrap_angle(jnp.array(-1e-9, jnp.float32))) < 2 * math.pi
     # a fast pendulum that crosses phi = 0 downward and 2*pi upward stays in [0, 2*pi)
     p = P.make_params(reward_noise_std=0.0)
-    step = jax.jit(P.step)  # 80 steps op by op took 5-13 s
+    step = jax.jit(P.step)  # op by op, each of the 80 steps would dispatch every operation anew
     for s0 in ([0.01, -6.0], [6.27, 6.0]):
         s = jnp.array(s0)
         for _ in range(40):

@@ -1,6 +1,6 @@
-"""Tests of the sparse online GP (SPEC §2) against independent references.
+"""Tests of the sparse online GP (design: docs/design.md#sparse-gp) against independent references.
 
-References: the exact GP posterior by Cholesky (scipy); the SPEC's projected-update formulas
+References: the exact GP posterior by Cholesky (scipy); Csato and Opper's projected-update formulas
 written out in NumPy; the closed-form projected-process (DTC) posterior of a fixed basis; and the
 plain NumPy online GP `gp_reference` (Csato-Opper's own Q/C recursion on variable-size arrays), run
 in np.longdouble (80-bit) as the high-precision oracle of long and ill-conditioned streams.
@@ -21,8 +21,8 @@ SF2, SN2 = 1.4, 0.05
 EXACT = dict(noise_novelty=0.0, collapse_fraction=1e-30)  # every point joins (with novelty_tol 0)
 
 
-# the health check compiled once per shape and dtype, as training runs it (op by op it compiled
-# each of its operations anew for every shape: 7 of the property test's 20 s)
+# the health check compiled once per shape and dtype, as training runs it (op by op it would
+# compile each of its operations anew for every shape)
 _check = jax.jit(sparse_gp.check)
 
 def _hyper(dtype=jnp.float64, ls=LS, sf2=SF2, sn2=SN2):
@@ -105,14 +105,15 @@ def test_full_set_equals_exact_gp():
 
 
 def test_add_then_delete_equals_projected_update():
-    """SPEC §2 identity: inserting x as a BV and deleting it again is the projected update."""
+    """Inserting x as a BV and deleting it again is the projected update (design:
+    docs/design.md#sparse-gp)."""
     n = 8
     xs, ys = _data(n + 1, 2)
     state = sparse_gp.update_batch(
         sparse_gp.init(n, 4), jnp.array(xs[:n]), jnp.array(ys[:n]), _hyper(), 5, **EXACT
     )
     x, y = xs[n], ys[n]
-    # Expected: the projected update written out from SPEC §2 in NumPy.
+    # Expected: the projected update of Csato and Opper, written out in NumPy.
     _, bv, alpha, C, Q, _ = _active(state)
     k = _np_gram(bv, x[None])[:, 0]
     v = SF2 + k @ C @ k
@@ -642,9 +643,9 @@ def test_segmented_loop_equals_scanned_updates_bit_for_bit(dtype, age_fn, capaci
     # float32, so an elementwise relative bound is no bound a backward-stable update promises. The
     # forward error of a backward-stable recursion is cond(K_B) times its backward error, so the
     # bound is sqrt(m) cond(K_B) eps of the leaf's largest entry, m the BVs kept, cond(K_B) their
-    # Gram matrix's condition number (113 and 1.3e3 here). Measured: at most 0.52 cond(K_B) eps
-    # (exp) and 0.77 (logit) on an AVX2 EPYC (2026-12-03), where a fixed 1e3 eps had failed;
-    # ~65 eps in both dtypes on an AVX-512 Xeon (2026-12-02).
+    # Gram matrix's condition number (113 and 1.3e3 here). The differences found stay below
+    # cond(K_B) eps, and how large they are depends on the CPU's vector width, so a fixed
+    # multiple of eps is no bound.
     cond, kept = _gram_condition(ref[0], hyper)
     tol = np.sqrt(kept) * cond * float(jnp.finfo(dtype).eps)
     for got, want in [(a, b) for other in (jax.tree.map(lambda a: jnp.stack([a, a]), seg), batched)
