@@ -213,12 +213,20 @@ def build_parser() -> argparse.ArgumentParser:
         description="Guided policy search with sparse online GPs (Jakab & Csato 2012) in JAX.",
     )
     sub = ap.add_subparsers(dest="command", required=True)
+    for add in (_add_demo, _add_reproduce, _add_sweep, _add_bench):
+        add(sub)
+    return ap
+
+
+def _add_demo(sub) -> None:
     demo = sub.add_parser("demo", help="simulate and plot one pendulum swing-up")
     demo.add_argument("--seconds", type=float, default=8.0, help="simulated time (default 8)")
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--out", default="results/demo", help="output directory")
     demo.set_defaults(func=_cmd_demo)
 
+
+def _add_reproduce(sub) -> None:
     from gpguided_jax.config import METHODS, PRESETS
 
     rep = sub.add_parser(
@@ -255,6 +263,9 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--max-chunks", type=int, default=None, help=argparse.SUPPRESS)
     rep.set_defaults(func=_cmd_reproduce)
 
+
+def _add_sweep(sub) -> None:
+    from gpguided_jax.config import METHODS, PRESETS
     from gpguided_jax.sweep import ALIASES, SWEEPABLE_FIELDS
 
     sw = sub.add_parser(
@@ -291,6 +302,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="JAX's persistent compilation cache ('none' turns it off)")
     sw.set_defaults(func=_cmd_sweep)
 
+
+def _add_bench(sub) -> None:
     be = sub.add_parser(
         "bench",
         help="run the benchmarks and print (and write) a JSON report",
@@ -308,7 +321,6 @@ def build_parser() -> argparse.ArgumentParser:
     be.add_argument("--quick", action="store_true", help="tiny sizes (a smoke test)")
     be.add_argument("--out", default=None, help="also write the JSON here")
     be.set_defaults(func=_cmd_bench)
-    return ap
 
 
 def main(argv: list[str] | None = None) -> int:

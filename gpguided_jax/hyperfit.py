@@ -150,9 +150,10 @@ def nlml_and_grad(log_hyper: LogParams, xs: jax.Array, ys: jax.Array, jitter: fl
 # recursively down to blocks of at most `_INVERSE_BLOCK` rows (inverted by a triangular solve), and
 # A^{-1} = X^T X is formed block by block; no product touches the zero triangle. That is about
 # 4/3 N^3 flops against 3 N^3 for a triangular solve with the identity and a full product X^T X,
-# and they run at the matrix-product rate (design: docs/design.md#decisions). The gradient reads A^{-1} block by block without
-# assembling it (`_hadamard_times`). The accuracy is that of the triangular solve it replaced (both
-# are set by the conditioning of A; tests/test_hyperfit.py checks it against an 80-bit inverse).
+# and they run at the matrix-product rate (design: docs/design.md#decisions). The gradient reads
+# A^{-1} block by block without assembling it (`_hadamard_times`). The accuracy is that of the
+# triangular solve it replaced (both are set by the conditioning of A; tests/test_hyperfit.py
+# checks it against an 80-bit inverse).
 # ------------------------------------------------------------------------------------------------
 
 _INVERSE_BLOCK = 128  # fewer recursion levels compile faster than smaller blocks, and run as fast

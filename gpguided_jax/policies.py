@@ -467,6 +467,30 @@ def gibbs_select(key, energy, inverse_temperature):
     return _random.categorical(key, inverse_temperature * energy)
 
 
+def _gibbs_score(theta, aux: PolicyAux, energy, probs, grad_mean, ctx) -> PolicyParams:
+    """The Gibbs policy's score d log pi_J/d theta (eq. 21-22) from the energies E and the
+    distribution pi over the candidates in `aux`, and dc/dtheta_c (`grad_mean`)."""
+    # dE_j / dc = E_j (a_j - c) / sigma_e^2 (eq. 22)
+    denergy_dc = energy * (aux.candidates - aux.mean_action) / (ctx.energy_width**2)
+    # beta (dE_J - sum_j pi_j dE_j) written as beta sum_j pi_j (dE_J - dE_j) (sum_j pi_j = 1),
+    # with the j = J term an exact 0, so that the score stays accurate relative to its own
+    # size, O(1 - pi_J), when pi_J -> 1.
+    selected = jnp.arange(aux.candidates.shape[0]) == aux.index
+    denergy_gap = jnp.where(selected, 0.0, denergy_dc[aux.index] - denergy_dc)
+    dlogpi_dc = ctx.inverse_temperature * (probs @ denergy_gap)
+    return PolicyParams(
+        controller=_scale_tree(grad_mean, dlogpi_dc), log_std=jnp.zeros_like(theta.log_std)
+    )
+
+
+def _gibbs_spread(candidates, probs):
+    """Standard deviation of the discrete distribution pi over the candidates (about its own
+    mean sum_j pi_j a_j, not about c(s))."""
+    centre = probs @ candidates
+    offsets = candidates - centre
+    return jnp.sqrt(jnp.maximum(probs @ (offsets * offsets), 0.0))
+
+
 def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 32) -> Policy:
     """Gibbs policy over K GP-scored candidate actions (eq. 20-22; design: docs/design.md#policies).
 
@@ -502,14 +526,8 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
         normalised_q = normalise_q(gp_means_over_actions(ctx.gp, ctx.kernel, state, candidates))
         energy, probs = gibbs_distribution(candidates, normalised_q, mean_action, ctx)
         index = gibbs_select(key_select, energy, ctx.inverse_temperature)
-        aux = PolicyAux(
-            mean_action=mean_action,
-            variance=variance,
-            candidates=candidates,
-            normalised_q=normalised_q,
-            probs=probs,
-            index=index,
-        )
+        aux = PolicyAux(mean_action=mean_action, variance=variance, candidates=candidates,
+                        normalised_q=normalised_q, probs=probs, index=index)
         return aux, energy, grad_mean
 
     def sample(key, theta, state, ctx):
@@ -531,43 +549,25 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
         relative_energy = jnp.where(selected, 0.0, energy - energy[aux.index])
         return -jax.nn.logsumexp(ctx.inverse_temperature * relative_energy)
 
-    def score(theta, aux, energy, probs, grad_mean, ctx):
-        # dE_j / dc = E_j (a_j - c) / sigma_e^2 (eq. 22)
-        denergy_dc = energy * (aux.candidates - aux.mean_action) / (ctx.energy_width**2)
-        # beta (dE_J - sum_j pi_j dE_j) written as beta sum_j pi_j (dE_J - dE_j) (sum_j pi_j = 1),
-        # with the j = J term an exact 0, so that the score stays accurate relative to its own
-        # size, O(1 - pi_J), when pi_J -> 1.
-        selected = jnp.arange(aux.candidates.shape[0]) == aux.index
-        denergy_gap = jnp.where(selected, 0.0, denergy_dc[aux.index] - denergy_dc)
-        dlogpi_dc = ctx.inverse_temperature * (probs @ denergy_gap)
-        return PolicyParams(
-            controller=_scale_tree(grad_mean, dlogpi_dc), log_std=jnp.zeros_like(theta.log_std)
-        )
-
-    def spread(candidates, probs):
-        """Standard deviation of the discrete distribution pi over the candidates (about its own
-        mean sum_j pi_j a_j, not about c(s))."""
-        centre = probs @ candidates
-        offsets = candidates - centre
-        return jnp.sqrt(jnp.maximum(probs @ (offsets * offsets), 0.0))
-
     def grad_log_prob(theta, state, action, ctx, aux):
         del action
         chex.assert_shape(state, (2,))
         mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
         energy, probs = gibbs_distribution(aux.candidates, aux.normalised_q, mean_action, ctx)
-        return score(theta, aux._replace(mean_action=mean_action), energy, probs, grad_mean, ctx)
+        return _gibbs_score(theta, aux._replace(mean_action=mean_action), energy, probs, grad_mean,
+                            ctx)
 
     def exploration_std(theta, state, ctx, aux):
-        """`spread` of pi at the current theta."""
+        """`_gibbs_spread` of pi at the current theta."""
         mean_action = controller.apply(theta.controller, state)
         _, probs = gibbs_distribution(aux.candidates, aux.normalised_q, mean_action, ctx)
-        return spread(aux.candidates, probs)
+        return _gibbs_spread(aux.candidates, probs)
 
     def act(key, theta, state, ctx):
         aux, energy, grad_mean = draw(key, theta, state, ctx)
-        return (aux.candidates[aux.index], aux, score(theta, aux, energy, aux.probs, grad_mean, ctx),
-                spread(aux.candidates, aux.probs))
+        return (aux.candidates[aux.index], aux,
+                _gibbs_score(theta, aux, energy, aux.probs, grad_mean, ctx),
+                _gibbs_spread(aux.candidates, aux.probs))
 
     return Policy(sample, log_prob, grad_log_prob, exploration_std, act, "gibbs")
 
