@@ -212,7 +212,11 @@ def write_grid_csv(path, columns, rows):
         w.writerows(rows)
 
 
-def main(argv=None):
+GP_METHODS = ("gp_pg", "guided_variance", "guided_direction")
+
+
+def parse_args(argv=None):
+    """(args, seeds, the plot seed)."""
     ap = argparse.ArgumentParser(description="Paper Fig. 2 and Fig. 4, and state coverage per method")
     ap.add_argument("--preset", default="paper", choices=sorted(config_lib.PRESETS))
     ap.add_argument("--seeds", type=int, default=5, help="number of seeds (default 5)")
@@ -231,17 +235,16 @@ def main(argv=None):
     plot_seed = seeds[0] if args.plot_seed is None else args.plot_seed
     if plot_seed not in seeds:
         ap.error(f"--plot-seed {plot_seed} is not among the seeds {seeds}")
-    ip = seeds.index(plot_seed)
-    os.makedirs(args.out, exist_ok=True)
-    overrides = {} if args.num_updates is None else {"num_updates": args.num_updates}
-    cfgs = {m: config_lib.preset(args.preset, method=m, **overrides) for m in METHODS}
-    t_all = time.perf_counter()
+    return args, seeds, plot_seed
 
+
+def run_methods(cfgs, seeds, args) -> dict:
+    """Every method trained with checkpoint roll-outs (`train_with_checkpoints`), the GP methods
+    from one hyperparameter fit per seed, and its coverage: method -> dict of the run's parts."""
     t0 = time.perf_counter()
     fit = jax.jit(jax.vmap(train_lib.make_train(cfgs["gp_pg"]).fit_kernel_for_seed))
     kernels = jax.device_get(fit(sharding.seed_keys(seeds)))
     _log(f"hyperparameter fit for {len(seeds)} seeds: {time.perf_counter() - t0:.1f}s")
-
     runs = {}
     for m in METHODS:
         t0 = time.perf_counter()
@@ -258,15 +261,23 @@ def main(argv=None):
              f"{time.perf_counter() - t0:.1f}s | final reward "
              f"{records['mean_reward'][:, -max(1, cfgs[m].num_updates // 10):].mean():.3f} | "
              f"coverage {cov.mean():.4f}")
+    return runs
 
-    # ---- coverage ----
-    n_cells = GRID["num_angle_bins"] * GRID["num_velocity_bins"]
+
+def coverage_summary(runs, seeds) -> list[dict]:
+    """Per method: mean coverage with its 95% t-interval over seeds, and the mean cells visited."""
     summary = []
     for m in METHODS:
         mean, half = stats_lib.t_interval(runs[m]["coverage"])
         summary.append(dict(method=m, coverage_mean=float(mean), ci95_low=float(mean - half),
                             ci95_high=float(mean + half),
                             cells_mean=float(runs[m]["cells"].mean()), seeds=len(seeds)))
+    return summary
+
+
+def write_coverage(args, seeds, runs, summary) -> None:
+    """coverage.csv (per method and seed) and coverage.json (the summary and the settings)."""
+    n_cells = GRID["num_angle_bins"] * GRID["num_velocity_bins"]
     with open(os.path.join(args.out, "coverage.csv"), "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["method", "seed", "coverage", "cells_visited", "cells_total"])
@@ -284,6 +295,9 @@ def main(argv=None):
             "cumulative_mean": {m: runs[m]["cumulative"].mean(0).tolist() for m in METHODS},
         }, f, indent=2)
 
+
+def plot_coverage(path, runs, seeds, summary) -> None:
+    """coverage.png: (a) coverage per method with its interval and the seeds, (b) its growth."""
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
     x = np.arange(len(METHODS))
     means = np.array([r["coverage_mean"] for r in summary]) * 100
@@ -308,40 +322,49 @@ def main(argv=None):
     ax2.legend(fontsize=8)
     ax2.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(os.path.join(args.out, "coverage.png"), dpi=120)
+    fig.savefig(path, dpi=120)
     plt.close(fig)
 
-    # ---- surfaces (Fig. 2 and 4) ----
-    gp_methods = ("gp_pg", "guided_variance", "guided_direction")
-    final_states = {m: np.asarray(runs[m]["final_ep"].states[ip]).reshape(-1, 2) for m in gp_methods}
-    final_gp = {m: seed_slice(runs[m]["state"], ip) for m in gp_methods}
+
+def gp_surfaces(cfgs, runs, ip, grid_points) -> dict:
+    """The GP methods' final GPs of seed index `ip` over two (phi, omega) windows (the whole state
+    space, and around the visited states and basis vectors): per (view, method) the value, the
+    latent variance, the variance relative to sigma_f^2 and the controller's action."""
+    final_states = {m: np.asarray(runs[m]["final_ep"].states[ip]).reshape(-1, 2) for m in GP_METHODS}
+    final_gp = {m: seed_slice(runs[m]["state"], ip) for m in GP_METHODS}
     zoom = surface_window(np.concatenate(
-        [*final_states.values(), *[bv_states(final_gp[m].gp) for m in gp_methods], [[math.pi, 0.0]]]))
+        [*final_states.values(), *[bv_states(final_gp[m].gp) for m in GP_METHODS], [[math.pi, 0.0]]]))
     views = {"whole state space": FULL_WINDOW, "around the visited states": zoom}
     controller = train_lib.make_controller(cfgs["gp_pg"])  # one controller: one compiled surface
     surface = jax.jit(analysis.gp_surface, static_argnums=2)
-    at_states = jax.jit(analysis.gp_at_states, static_argnums=2)
     actions = jax.jit(jax.vmap(controller.apply, in_axes=(None, 0)))
     surf = {}  # (view, method) -> dict of (A, B) arrays
     grids = {}
     for view, ((p0, p1), (o0, o1)) in views.items():
-        phi, omega = np.linspace(p0, p1, args.grid), np.linspace(o0, o1, args.grid)
+        phi, omega = np.linspace(p0, p1, grid_points), np.linspace(o0, o1, grid_points)
         grids[view] = (phi, omega)
         pp, ww = np.meshgrid(phi, omega, indexing="ij")
         grid_states = jnp.asarray(np.stack([pp.ravel(), ww.ravel()], -1))
-        for m in gp_methods:
+        for m in GP_METHODS:
             st = final_gp[m]
             value, var = surface(st.gp, st.kernel, controller, st.theta.controller, phi, omega)
             acts = np.asarray(actions(st.theta.controller, grid_states)).reshape(pp.shape)
             surf[view, m] = dict(value=np.asarray(value), var=np.asarray(var),
                                  rel=np.asarray(var) / float(st.kernel.signal_variance), action=acts)
+    return dict(final_states=final_states, final_gp=final_gp, zoom=zoom, views=views,
+                controller=controller, surf=surf, grids=grids)
 
-    # visited states of the plot seed with their values
+
+def write_visited_states(path, cfgs, runs, ip, surfaces) -> dict:
+    """visited_states.csv: the final roll-outs of seed index `ip` with their returns-to-go and the
+    GP's value and variance there. Returns per GP method the values and returns seen."""
     rows, visited_vals = [], {}
     returns = jax.jit(jax.vmap(estimators.discounted_returns, in_axes=(0, None)))
-    for m in gp_methods:
+    at_states = jax.jit(analysis.gp_at_states, static_argnums=2)
+    controller = surfaces["controller"]
+    for m in GP_METHODS:
         ep = jax.device_get(seed_slice(runs[m]["final_ep"], ip))
-        st = final_gp[m]
+        st = surfaces["final_gp"][m]
         rets = np.asarray(returns(ep.rewards, cfgs[m].discount))
         s_flat = np.asarray(ep.states).reshape(-1, 2)
         v, var = (np.asarray(a) for a in at_states(st.gp, st.kernel, controller,
@@ -353,37 +376,44 @@ def main(argv=None):
             rows.append([m, e, t, f"{s_flat[k, 0]:.5f}", f"{s_flat[k, 1]:.5f}",
                          f"{ep.actions[e, t]:.5f}", f"{ep.rewards[e, t]:.5f}",
                          f"{rets[e, t]:.5f}", f"{v[k]:.5f}", f"{var[k]:.6g}"])
-    write_grid_csv(os.path.join(args.out, "visited_states.csv"),
-                   ["method", "episode", "step", "phi", "omega", "action", "reward", "return_to_go",
-                    "value_gp", "latent_variance"], rows)
+    write_grid_csv(path, ["method", "episode", "step", "phi", "omega", "action", "reward",
+                          "return_to_go", "value_gp", "latent_variance"], rows)
+    return visited_vals
 
-    def panel_rows(methods, key):
-        return [(view, *grids[view],
-                 [(LABELS[m], surf[view, m][key], final_states[m], bv_states(final_gp[m].gp),
-                   surf[view, m]["rel"]) for m in methods])
-                for view in views]
 
-    def grid_csv(path, methods, keys):
-        out = []
-        for view in views:
-            phi, omega = grids[view]
-            for m in methods:
-                d = surf[view, m]
-                out += [[view, m, f"{p:.5f}", f"{w:.5f}", f"{d['action'][i, j]:.6g}",
-                         *[f"{d[k][i, j]:.6g}" for k in keys]]
-                        for i, p in enumerate(phi) for j, w in enumerate(omega)]
-        write_grid_csv(path, ["view", "method", "phi", "omega", "action", *keys], out)
+def _surface_rows(surfaces, methods, key):
+    """`plot_surfaces`'s rows: one per view, one panel per method."""
+    surf, grids = surfaces["surf"], surfaces["grids"]
+    return [(view, *grids[view],
+             [(LABELS[m], surf[view, m][key], surfaces["final_states"][m],
+               bv_states(surfaces["final_gp"][m].gp), surf[view, m]["rel"]) for m in methods])
+            for view in surfaces["views"]]
 
-    subtitle = f"{args.preset} preset, seed {plot_seed}, after {cfgs['gp_pg'].num_updates} updates"
+
+def _write_surface_csv(path, surfaces, methods, keys) -> None:
+    out = []
+    for view in surfaces["views"]:
+        phi, omega = surfaces["grids"][view]
+        for m in methods:
+            d = surfaces["surf"][view, m]
+            out += [[view, m, f"{p:.5f}", f"{w:.5f}", f"{d['action'][i, j]:.6g}",
+                     *[f"{d[k][i, j]:.6g}" for k in keys]]
+                    for i, p in enumerate(phi) for j, w in enumerate(omega)]
+    write_grid_csv(path, ["view", "method", "phi", "omega", "action", *keys], out)
+
+
+def plot_fig2_fig4(out, subtitle, surfaces, visited_vals) -> None:
+    """Fig. 2 (latent variance, gp_pg and guided_variance) and Fig. 4 (state value, gp_pg and
+    guided_direction): PNG and CSV each."""
     f2 = ("gp_pg", "guided_variance")
     # log colour scale: the variance falls by orders of magnitude where the GP has data
     plot_surfaces(
-        panel_rows(f2, "rel"), os.path.join(args.out, "fig2_variance.png"),
+        _surface_rows(surfaces, f2, "rel"), os.path.join(out, "fig2_variance.png"),
         cbar_label="σ²(s, c(s)) / σ_f²  (log scale)",
         title=f"Fig. 2: GP latent predictive variance at a = c(s) ({subtitle})",
         norm=matplotlib.colors.LogNorm(vmin=1e-3, vmax=1.0, clip=True), cmap="viridis",
         extend="min")
-    grid_csv(os.path.join(args.out, "fig2_variance.csv"), f2, ("var", "rel"))
+    _write_surface_csv(os.path.join(out, "fig2_variance.csv"), surfaces, f2, ("var", "rel"))
 
     f4 = ("gp_pg", "guided_direction")
     # colour range: the values seen at the visited states (V and returns-to-go); the GP mean
@@ -392,13 +422,16 @@ def main(argv=None):
     lo, hi = np.percentile(seen, [0.5, 99.5])
     pad = 0.25 * (hi - lo) + 1e-9
     plot_surfaces(
-        panel_rows(f4, "value"), os.path.join(args.out, "fig4_value.png"),
+        _surface_rows(surfaces, f4, "value"), os.path.join(out, "fig4_value.png"),
         cbar_label="V(s) = Q_GP(s, c(s))", title=f"Fig. 4: GP state value ({subtitle})",
         norm=matplotlib.colors.Normalize(vmin=lo - pad, vmax=hi + pad), cmap="magma",
         extend="both", confident=0.5)
-    grid_csv(os.path.join(args.out, "fig4_value.csv"), f4, ("value", "rel"))
+    _write_surface_csv(os.path.join(out, "fig4_value.csv"), surfaces, f4, ("value", "rel"))
 
-    np.savez(os.path.join(args.out, "results.npz"), methods=np.asarray(METHODS), seeds=np.asarray(seeds),
+
+def save_results(path, seeds, runs) -> None:
+    """results.npz: coverage, checkpoints, visited states and every record, per method and seed."""
+    np.savez(path, methods=np.asarray(METHODS), seeds=np.asarray(seeds),
              coverage=np.stack([runs[m]["coverage"] for m in METHODS]),
              cumulative_coverage=np.stack([runs[m]["cumulative"] for m in METHODS]),
              checkpoint_updates=runs["gp_pg"]["updates"],
@@ -406,20 +439,44 @@ def main(argv=None):
              **{k: np.stack([runs[m]["records"][k] for m in METHODS])
                 for k in train_lib.RECORD_FIELDS})
 
+
+def print_report(summary, surfaces, plot_seed) -> None:
+    """The coverage table and a line per GP method's surfaces, to stdout."""
+    n_cells = GRID["num_angle_bins"] * GRID["num_velocity_bins"]
     print("| method | coverage (mean) | 95% CI | cells visited (mean) |")
     print("|---|---|---|---|")
     for r in summary:
         print(f"| {r['method']} | {100 * r['coverage_mean']:.2f}% | [{100 * r['ci95_low']:.2f}%, "
               f"{100 * r['ci95_high']:.2f}%] | {r['cells_mean']:.1f} of {n_cells} |")
-    for m in gp_methods:
-        z = surf["around the visited states", m]
-        f = surf["whole state space", m]
-        print(f"{m} (seed {plot_seed}): {len(bv_states(final_gp[m].gp))} basis vectors; median "
-              f"sigma^2/sigma_f^2 {np.median(z['rel']):.3g} around the visited states, "
+    for m in GP_METHODS:
+        z = surfaces["surf"]["around the visited states", m]
+        f = surfaces["surf"]["whole state space", m]
+        print(f"{m} (seed {plot_seed}): {len(bv_states(surfaces['final_gp'][m].gp))} basis vectors; "
+              f"median sigma^2/sigma_f^2 {np.median(z['rel']):.3g} around the visited states, "
               f"{np.median(f['rel']):.3g} over the whole state space; V around the visited states "
               f"in [{z['value'].min():.1f}, {z['value'].max():.1f}]")
-    (p0, p1), (o0, o1) = zoom
+    (p0, p1), (o0, o1) = surfaces["zoom"]
     print(f"zoomed window: phi [{p0:.2f}, {p1:.2f}], omega [{o0:.2f}, {o1:.2f}]")
+
+
+def main(argv=None):
+    args, seeds, plot_seed = parse_args(argv)
+    ip = seeds.index(plot_seed)
+    os.makedirs(args.out, exist_ok=True)
+    overrides = {} if args.num_updates is None else {"num_updates": args.num_updates}
+    cfgs = {m: config_lib.preset(args.preset, method=m, **overrides) for m in METHODS}
+    t_all = time.perf_counter()
+    runs = run_methods(cfgs, seeds, args)
+    summary = coverage_summary(runs, seeds)
+    write_coverage(args, seeds, runs, summary)
+    plot_coverage(os.path.join(args.out, "coverage.png"), runs, seeds, summary)
+    surfaces = gp_surfaces(cfgs, runs, ip, args.grid)
+    visited_vals = write_visited_states(os.path.join(args.out, "visited_states.csv"), cfgs, runs, ip,
+                                        surfaces)
+    subtitle = f"{args.preset} preset, seed {plot_seed}, after {cfgs['gp_pg'].num_updates} updates"
+    plot_fig2_fig4(args.out, subtitle, surfaces, visited_vals)
+    save_results(os.path.join(args.out, "results.npz"), seeds, runs)
+    print_report(summary, surfaces, plot_seed)
     print(f"wrote {args.out}/fig2_variance.png, fig4_value.png, coverage.png and CSV/JSON "
           f"({time.perf_counter() - t_all:.0f}s)")
 

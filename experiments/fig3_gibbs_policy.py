@@ -52,7 +52,7 @@ def build_gp(state, num_points=25):
     return gp, hyper
 
 
-def main():
+def parse_args():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="results/fig3")
     parser.add_argument("--seed", type=int, default=0)
@@ -63,9 +63,13 @@ def main():
     parser.add_argument(
         "--candidate-std", type=float, default=3.0, help="sqrt of the candidate-variance floor"
     )
-    args = parser.parse_args()
-    os.makedirs(args.out, exist_ok=True)
+    return parser.parse_args()
 
+
+def gibbs_at_state(args):
+    """The Gibbs policy at STATE with zero controller weights (c(s) = 0): (a) Q_GP, its min-max
+    normalisation, the energy and pi over a dense action grid; (b) the selections of the policy's
+    own sampler. Returns (grid, q, q_tilde, energy, pi, actions, aux, mean_action)."""
     state = jnp.asarray(STATE)
     controller = controllers.linear_controller()
     theta = policies.init_params(controller)  # zero weights: c(s) = 0
@@ -93,7 +97,13 @@ def main():
     actions, aux = jax.jit(jax.vmap(policy.sample, (0, None, None, None)))(
         keys, theta, state, ctx
     )
-    actions = np.asarray(actions)
+    return grid, q, q_tilde, energy, pi, np.asarray(actions), aux, mean_action
+
+
+def main():
+    args = parse_args()
+    os.makedirs(args.out, exist_ok=True)
+    grid, q, q_tilde, energy, pi, actions, aux, mean_action = gibbs_at_state(args)
     edges = np.linspace(-ACTION_RANGE - 0.25, ACTION_RANGE + 0.25, 51)
     counts, _ = np.histogram(actions, bins=edges)
 

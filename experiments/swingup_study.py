@@ -382,14 +382,30 @@ def gp_figure(out: str, seeds, dtype: str, chunk: int = 10, episodes: int = 5) -
     V(s) = Q_GP(s, c(s)) on a (phi, omega) grid, with the visited states, after the first chunk
     ("early") and the last ("late").
     """
+    phi = np.linspace(-math.pi / 2, 3 * math.pi / 2, 73)
+    omega = np.linspace(-8.0, 8.0, 65)
+    curves, snaps = _gp_runs(seeds, dtype, chunk, episodes, phi, omega)
+    _plot_gp_early_late(os.path.join(out, "swingup_gp_early_late.png"), snaps, phi, omega,
+                        seeds, episodes)
+    _plot_upright_region(os.path.join(out, "swingup_upright_region.png"), curves, seeds, episodes)
+    summary = {m: {"updates": curves[m]["updates"].tolist(),
+                   "upright_share_mean": curves[m]["upright_share"].mean(0).tolist(),
+                   "height_mean": curves[m]["height"].mean(0).tolist()} for m in GP_METHODS}
+    summary["seeds"] = list(seeds)
+    checkpoints.atomic_write_text(os.path.join(out, "gp_figure.json"), json.dumps(summary, indent=2))
+    return summary
+
+
+def _gp_runs(seeds, dtype, chunk, episodes, phi, omega):
+    """`gp_figure`'s runs: per GP method the upright share and height after every chunk
+    (curves), and the first seed's GP over the (phi, omega) grid after the first and the last
+    chunk (snaps, keyed (method, 'early' or 'late'))."""
     from gpguided_jax import analysis
     from gpguided_jax import train as train_lib
 
     keys = sharding.seed_keys(seeds)
     fit = jax.jit(jax.vmap(train_lib.make_train(base_config("gp_pg", dtype=dtype)).fit_kernel_for_seed))
     priors = fit(keys)
-    phi = np.linspace(-math.pi / 2, 3 * math.pi / 2, 73)
-    omega = np.linspace(-8.0, 8.0, 65)
     curves, snaps = {}, {}
     for m in GP_METHODS:
         cfg = base_config(m, dtype=dtype)
@@ -422,7 +438,11 @@ def gp_figure(out: str, seeds, dtype: str, chunk: int = 10, episodes: int = 5) -
                          upright_share=np.stack(share, 1), height=np.stack(height, 1))
         log(f"[gpfig {m}] upright share by chunk (mean over seeds): "
             f"{np.round(curves[m]['upright_share'].mean(0), 3).tolist()}")
+    return curves, snaps
 
+
+def _plot_gp_early_late(path, snaps, phi, omega, seeds, episodes) -> None:
+    """Per GP method (rows): the relative variance and the value, early and late (columns)."""
     fig, axes = plt.subplots(3, 4, figsize=(19, 12))
     pw = lambda v: np.mod(v + math.pi / 2, 2 * math.pi) - math.pi / 2  # noqa: E731 (axis range)
     vals = np.concatenate([snaps[k]["value"].ravel() for k in snaps])
@@ -444,9 +464,12 @@ def gp_figure(out: str, seeds, dtype: str, chunk: int = 10, episodes: int = 5) -
     fig.suptitle(f"Swing-up: what the GP sees, early and late (seed {seeds[0]}; white: states of "
                  f"{episodes} roll-outs of the method's own policy; star: upright)")
     fig.tight_layout()
-    fig.savefig(os.path.join(out, "swingup_gp_early_late.png"), dpi=100)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
+
+def _plot_upright_region(path, curves, seeds, episodes) -> None:
+    """Per GP method: the upright share and the highest point reached, after every chunk."""
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
     for i, m in enumerate(GP_METHODS):
         u = curves[m]["updates"]
@@ -465,14 +488,8 @@ def gp_figure(out: str, seeds, dtype: str, chunk: int = 10, episodes: int = 5) -
     fig.suptitle(f"Swing-up: does guided exploration reach the upright region sooner? "
                  f"({len(seeds)} seeds: thin lines; {episodes} roll-outs per seed and point)")
     fig.tight_layout()
-    fig.savefig(os.path.join(out, "swingup_upright_region.png"), dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
-    summary = {m: {"updates": curves[m]["updates"].tolist(),
-                   "upright_share_mean": curves[m]["upright_share"].mean(0).tolist(),
-                   "height_mean": curves[m]["height"].mean(0).tolist()} for m in GP_METHODS}
-    summary["seeds"] = list(seeds)
-    checkpoints.atomic_write_text(os.path.join(out, "gp_figure.json"), json.dumps(summary, indent=2))
-    return summary
 
 
 def main(argv=None) -> int:
