@@ -13,10 +13,7 @@ import logging
 import re
 
 # (logger, substring of the message) pairs shown as information, not warnings.
-KNOWN_DOCSTRING_ISSUES = (
-    # sweep.resolve_param's "Raises:" entry is a sentence, not "ValueError: description".
-    ("griffe", "Failed to get 'exception: description' pair from 'ValueError naming the field"),
-)
+KNOWN_DOCSTRING_ISSUES: tuple[tuple[str, str], ...] = ()
 _NOT_A_PYTHON_NAME = re.compile(r"Could not find cross-reference target '(?![\w.]+')")
 
 

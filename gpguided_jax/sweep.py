@@ -51,7 +51,7 @@ def resolve_param(name: str) -> str:
     """The `TrainConfig` field a sweep parameter names (aliases: lambda, beta, lr).
 
     Raises:
-      ValueError naming the field when it is unknown, static, or not a scalar traced field.
+      ValueError: naming the field when it is unknown, static, or not a scalar traced field.
     """
     field = ALIASES.get(name, name)
     aliases = ", ".join(f"{a}->{f}" for a, f in ALIASES.items())
