@@ -9,11 +9,14 @@
 * `checkpoint_path`, `save_checkpoint`, `load_checkpoint`: a method's state after its last
   finished chunk of updates and its records so far, one file per process (each holds the rows of
   its own seeds), the previous one kept beside it, so that processes interrupted between their
-  writes still resume from a chunk they all hold.
+  writes still resume from a chunk they all hold; `remove_checkpoints` once the run is written.
+* `open_out_dir`: the output directory, created and locked for this run, so that two runs never
+  write the same files.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import json
@@ -51,6 +54,47 @@ def atomic_savez(path: str, **arrays) -> None:
 
 def atomic_write_text(path: str, text: str) -> None:
     atomic_write_bytes(path, text.encode())
+
+
+class OutDirError(RuntimeError):
+    """The output directory cannot be used: not a directory, not writable, or another run's."""
+
+
+@contextlib.contextmanager
+def open_out_dir(out_dir: str):
+    """Creates `out_dir` if needed and holds an exclusive lock on it (`.gpguided.lock`, one per
+    process of a multi-process run) while the body runs. Raises `OutDirError`, in one line, when
+    `out_dir` is a file, cannot be written, or is locked by another run."""
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise OutDirError(f"{out_dir} exists and is not a directory")
+    try:
+        os.makedirs(out_dir, exist_ok=True)
+        n = distributed.process_count()
+        name = ".gpguided.lock" if n == 1 else f".gpguided.process{jax.process_index()}-of-{n}.lock"
+        lock = open(os.path.join(out_dir, name), "a")
+    except OSError as e:
+        raise OutDirError(f"cannot write to {out_dir}: {e.strerror or e}") from None
+    with lock:
+        try:
+            import fcntl
+        except ImportError:  # not POSIX: no lock
+            fcntl = None
+        if fcntl is not None:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                raise OutDirError(f"another run is writing to {out_dir} (it holds {lock.name}); "
+                                  "wait for it to finish or choose another output directory") from None
+        yield out_dir
+
+
+def remove_checkpoints(out_dir: str, method: str) -> None:
+    """Deletes `method`'s checkpoint files of this process (and the previous ones kept beside
+    them): what a finished run no longer needs."""
+    base = checkpoint_path(out_dir, method)
+    for path in (base, base + ".prev"):
+        if os.path.exists(path):
+            os.remove(path)
 
 
 def _set_aside(path: str, why: str, progress) -> None:

@@ -259,17 +259,24 @@ def run_method(
                                            ckpt, digest, mesh, n_chunks, progress)
     chunk = functools.cache(lambda n: chunk_program(train, mesh, loop, n, gp_program))
 
-    t_start, chunks_this_call = time.perf_counter(), 0
+    # The first chunk of a call includes compiling the program: the rate (and the ETA) is
+    # measured over the chunks after it.
+    t_first, chunks_this_call = None, 0
     while done < n_chunks and (max_chunks is None or chunks_this_call < max_chunks):
+        t0 = time.perf_counter()
         n = min(chunk_size, cfg.num_updates - done * chunk_size)
         state, rec = chunk(n)(state)
         rec, records = append_records(records, rec)
         done += 1
         chunks_this_call += 1
         checkpoints.save_checkpoint(ckpt, state, records, done, digest)
-        rate = chunks_this_call * chunk_size / max(time.perf_counter() - t_start, 1e-9)
         updates_done = min(done * chunk_size, cfg.num_updates)
-        progress(_chunk_progress(cfg, rec, len(seeds), updates_done, rate))
+        if t_first is None:
+            t_first, rate = time.perf_counter(), None
+            first_s = t_first - t0
+        else:
+            rate = (chunks_this_call - 1) * chunk_size / max(time.perf_counter() - t_first, 1e-9)
+        progress(_chunk_progress(cfg, rec, len(seeds), updates_done, rate, first_s))
     return {k: v[:len(seeds)] for k, v in records.items()}, state
 
 
@@ -310,12 +317,19 @@ def append_records(records: dict, rec) -> tuple:
 
 
 def _chunk_progress(cfg: config_lib.TrainConfig, rec, n_real: int, updates_done: int,
-                    rate: float) -> str:
-    """The progress line after a chunk: updates done, rate, ETA, the latest mean reward of the
-    real (unpadded) seeds, and a warning for skipped gradients or rejected GP updates."""
-    eta = (cfg.num_updates - updates_done) / max(rate, 1e-9)
-    msg = (f"[{cfg.method}] updates {updates_done}/{cfg.num_updates} | {rate:.1f} updates/s "
-           f"x {n_real} seeds | ETA {eta:.0f}s | mean reward {np.mean(rec.mean_reward[:n_real, -1]):.3f}")
+                    rate: float | None, first_s: float) -> str:
+    """The progress line after a chunk: updates done, rate and ETA (`rate` None: the first chunk
+    of the call, which took `first_s` and compiled the program if it was not yet), the latest
+    mean reward of the real (unpadded) seeds, and a warning for skipped gradients or rejected GP
+    updates."""
+    left = cfg.num_updates - updates_done
+    if rate is None:
+        timing = f"first chunk in {first_s:.1f}s, compiling included" + (
+            " | ETA after the next chunk" if left else "")
+    else:
+        timing = f"{rate:.1f} updates/s x {n_real} seeds | ETA {left / max(rate, 1e-9):.0f}s"
+    msg = (f"[{cfg.method}] updates {updates_done}/{cfg.num_updates} | {timing} | "
+           f"mean reward {np.mean(rec.mean_reward[:n_real, -1]):.3f}")
     for field, what in (("nonfinite_grad", "non-finite gradient estimates skipped"),
                         ("gp_guard", "GP updates rejected by the health check")):
         bad = int(np.sum(np.asarray(getattr(rec, field))[:n_real]))
@@ -343,9 +357,15 @@ def reproduce(
     progress: Callable[[str], None] = _log,
     seed_loop: str = "auto",
     gp_program: str = "shared",
+    keep_checkpoints: bool = False,
 ) -> dict:
     """Runs every method for every seed and writes results.npz, config.json, summary.csv,
     comparisons.csv and Fig. 5 to `out_dir`.
+
+    `out_dir` is locked for the run (`checkpoints.open_out_dir`: a second run writing to it is
+    refused with `checkpoints.OutDirError`). Each method's checkpoints are kept while the run is
+    unfinished, so that the same call resumes it, and deleted once the results are written
+    (unless `keep_checkpoints`).
 
     Returns a dict with the summary and comparison rows, their markdown tables and the output
     paths; `complete` is False when `max_chunks` ended a method early (then nothing but
@@ -356,11 +376,21 @@ def reproduce(
     `chunk_program`).
     """
     _check_gp_program(gp_program)
-    seeds = list(map(int, seeds))
+    with checkpoints.open_out_dir(out_dir):
+        out = _reproduce(preset, list(map(int, seeds)), list(methods), out_dir, dtype, chunk_size,
+                         num_devices, max_chunks, overrides, progress, seed_loop, gp_program)
+        if out["complete"] and not keep_checkpoints:
+            for m in methods:
+                checkpoints.remove_checkpoints(out_dir, m)
+    return out
+
+
+def _reproduce(preset, seeds, methods, out_dir, dtype, chunk_size, num_devices, max_chunks,
+               overrides, progress, seed_loop, gp_program) -> dict:
+    """`reproduce` in the locked `out_dir`."""
     main = distributed.is_main()
     if not main:  # one voice: process 0 reports progress and writes the results
         progress = _silent
-    os.makedirs(out_dir, exist_ok=True)
     mesh = sharding.make_mesh(num_devices, len(seeds))
     loop = sharding.resolve_seed_loop(seed_loop, mesh)
     cfgs = {m: config_lib.preset(preset, method=m, dtype=dtype, **(overrides or {})) for m in methods}

@@ -13,6 +13,7 @@ the LAPACK threads and the CPU devices before JAX starts).
 from __future__ import annotations
 
 import os
+import re
 import sys
 
 DEFAULT_COMPILE_CACHE = os.environ.get(
@@ -103,15 +104,102 @@ class CompileCacheCounter:
             setattr(self, name, getattr(self, name) + 1)
 
     def summary(self, path: str, min_compile_s: float) -> str:
-        line = (f"compilation cache: {self.loaded} of {self.requests} program(s) loaded from {path}, "
+        return (f"compilation cache: {self.loaded} of {self.requests} program(s) loaded from {path}, "
                 f"{self.requests - self.loaded} compiled, {self.written} of them written to it "
                 f"(those that took over {min_compile_s:g} s to compile)")
-        if self.loaded:
-            line += (". XLA:CPU may log 'Target machine feature +prefer-no-gather is not supported "
-                     "on the host machine ... SIGILL' for each program it loads: on CPUs whose "
-                     "LLVM tuning sets these preferences that is a false alarm, "
-                     "openxla/xla#44565; the programs loaded are the ones compiled here")
-        return line
+
+
+def cpu_key() -> str:
+    """A name for this CPU type and jaxlib build: the architecture, a readable model tag and a
+    digest of the CPU's model and feature flags (``/proc/cpuinfo`` on Linux) and of jaxlib's
+    version. A compiled program is specific to the CPU features it was compiled for, so the
+    compilation cache keeps one directory per key, and a program is never loaded on a CPU of
+    another type (nor by another jaxlib), even where the cache directory is shared."""
+    import hashlib
+    import platform
+
+    fields: dict[str, str] = {}  # the first processor's
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if not line.strip():
+                    if fields:
+                        break
+                    continue
+                name, _, value = line.partition(":")
+                fields.setdefault(name.strip(), value.strip())
+    except OSError:  # not Linux
+        pass
+    model = fields.get("model name") or fields.get("CPU part") or platform.processor()
+    flags = fields.get("flags") or fields.get("Features", "")
+    try:
+        from jaxlib import version as jaxlib_version
+
+        jaxlib = jaxlib_version.__version__
+    except ImportError:
+        jaxlib = "unknown"
+    digest = hashlib.sha256("\n".join((platform.machine(), model, flags, jaxlib)).encode())
+    tag = re.sub(r"[^a-z0-9]+", "-", model.lower()).strip("-")[:32] or "cpu"
+    return f"{platform.machine() or 'unknown'}-{tag}-{digest.hexdigest()[:12]}"
+
+
+def compile_cache_dir(base: str) -> str:
+    """The directory of `base`'s compilation cache that this CPU type uses (`cpu_key`)."""
+    return os.path.join(base, cpu_key())
+
+
+# What XLA logs on loading a cached program that is a false alarm here, where the cache is kept
+# per CPU type and jaxlib build (`cpu_key`), so that a program is only ever loaded by the CPU
+# type and the jaxlib that compiled it: the loader compares the features the program was compiled
+# for with the host's and reports LLVM tuning preferences that are not CPU features, on the very
+# machine that compiled it (openxla/xla#44565); and PjRt says it does not track the executable's
+# XLA version. Every such line is dropped from the log (`drop_stderr_lines`).
+_LOADER_FALSE_ALARMS = re.compile(
+    rb"cpu_aot_loader\.cc:\d+\] Loading XLA:CPU AOT result\. Target machine feature "
+    rb"\+prefer-no-(gather|scatter) is not +supported on the host machine"
+    rb"|pjrt_executable\.cc:\d+\] Assume version compatibility\. PjRt-IFRT does not track XLA "
+    rb"executable versions")
+_STDERR_FILTER: tuple | None = None  # (terminal fd, its file, the thread) once installed
+
+
+def drop_stderr_lines(pattern: re.Pattern = _LOADER_FALSE_ALARMS) -> None:
+    """Drops the lines of this process's standard error (file descriptor 2, so native code's
+    logging too) that match `pattern`; every other line passes unchanged and in order. Fatal-error
+    reports (`faulthandler`) go straight to the original standard error. Installed once per
+    process; undone at exit."""
+    global _STDERR_FILTER
+    if _STDERR_FILTER is not None:
+        return
+    import atexit
+    import faulthandler
+    import threading
+
+    sys.stderr.flush()
+    terminal = os.dup(2)
+    read_end, write_end = os.pipe()
+    os.dup2(write_end, 2)
+    os.close(write_end)
+
+    def pump():
+        with os.fdopen(read_end, "rb") as lines:
+            for line in lines:
+                if not pattern.search(line):
+                    view = memoryview(line)
+                    while view:
+                        view = view[os.write(terminal, view):]
+
+    thread = threading.Thread(target=pump, name="stderr-filter", daemon=True)
+    thread.start()
+    terminal_file = os.fdopen(os.dup(terminal), "w")
+    faulthandler.enable(file=terminal_file)
+    _STDERR_FILTER = (terminal, terminal_file, thread)
+
+    def undo():
+        sys.stderr.flush()
+        os.dup2(terminal, 2)  # closes the pipe's last writer: the thread reads to its end
+        thread.join(timeout=5)
+
+    atexit.register(undo)
 
 
 _COMPILE_CACHE: tuple[str, CompileCacheCounter] | None = None  # (directory, counter) once set
@@ -119,7 +207,9 @@ _COMPILE_CACHE: tuple[str, CompileCacheCounter] | None = None  # (directory, cou
 
 def set_compile_cache(path: str | None) -> None:
     """JAX's persistent compilation cache: a repeated run loads its compiled programs instead of
-    compiling them again. 'none' turns it off.
+    compiling them again. 'none' turns it off. The programs go to the subdirectory of `path` for
+    this CPU type (`compile_cache_dir`), so a cached program is never loaded on a CPU it was not
+    compiled for, and the loader's false alarms are dropped from the log (`drop_stderr_lines`).
 
     With jax 0.9.2 on CPU every program this project compiles loads correctly (and computes the
     same results bit for bit), but loading a much larger cached program crashes the process
@@ -133,13 +223,15 @@ def set_compile_cache(path: str | None) -> None:
         import jax
         import jax.monitoring
 
+        path = compile_cache_dir(path)
         os.makedirs(path, exist_ok=True)
+        drop_stderr_lines()
         jax.config.update("jax_compilation_cache_dir", path)
         if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
             # every program, not only those over JAX's default of 1 s: the many small programs of a
             # run that compile in under 1 s would otherwise be compiled again by every warm run
             jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-        if not faulthandler.is_enabled():
+        if not faulthandler.is_enabled():  # `drop_stderr_lines` enabled it
             faulthandler.enable()
         if _COMPILE_CACHE is None:
             counter = CompileCacheCounter()

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from conftest import REPRODUCE_KW, fast_compile_env
 
-from gpguided_jax import cli, runtime
+from gpguided_jax import cli, config, runtime
 from gpguided_jax import reproduce as R
 from gpguided_jax import train as T
 
@@ -91,14 +91,20 @@ def test_float64_without_x64_is_refused_with_advice():
     assert proc.returncode == 0 and proc.stdout.strip() == "float32", proc.stderr
 
 
-def _check_cli_run(proc, out, dtype, method):
-    """A finished `gpguided reproduce`: its tables printed, `method`'s checkpoint in `dtype`, every
-    record finite, no temporary file left."""
+def _check_cli_run(proc, out, dtype, method, kept=False):
+    """A finished `gpguided reproduce`: its tables printed, `method`'s checkpoint in `dtype` if it
+    was `kept`, else no checkpoint left, every record finite, no temporary file left, and no
+    traceback or loader false alarm in the log."""
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "failing seeds" in proc.stdout and "P(X > Y)" in proc.stdout
-    with np.load(out / f"checkpoint_{method}.npz") as f:
-        floats = [f[k] for k in f.files if k.startswith("leaf_") and f[k].dtype.kind == "f"]
-    assert floats and all(x.dtype == np.dtype(dtype) for x in floats)
+    if kept:
+        with np.load(out / f"checkpoint_{method}.npz") as f:
+            floats = [f[k] for k in f.files if k.startswith("leaf_") and f[k].dtype.kind == "f"]
+        assert floats and all(x.dtype == np.dtype(dtype) for x in floats)
+    else:
+        assert not [p for p in os.listdir(out) if p.startswith("checkpoint_")], os.listdir(out)
+    for noise in ("Traceback", "prefer-no-gather", "Assume version compatibility"):
+        assert noise not in proc.stderr, proc.stderr[-3000:]
     with np.load(out / "results.npz") as f:
         for k in T.RECORD_FIELDS:
             assert np.all(np.isfinite(f[k])), k
@@ -113,13 +119,13 @@ def test_cli_runs_in_float32(tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "gpguided_jax.cli", "reproduce", "--preset", "tiny", "--seeds", "2",
          "--methods", "reinforce", "guided_variance", "--dtype", "float32", "--chunk-size", "3",
-         "--out", str(out)], capture_output=True, text=True, timeout=600, cwd=ROOT,
-        env=fast_compile_env())
-    _check_cli_run(proc, out, "float32", "guided_variance")
+         "--keep-checkpoints", "--out", str(out)], capture_output=True, text=True, timeout=600,
+        cwd=ROOT, env=fast_compile_env())
+    _check_cli_run(proc, out, "float32", "guided_variance", kept=True)
 
 
 def test_corrupt_checkpoint_and_kernels_are_set_aside(tmp_path):
-    kw = dict(REPRODUCE_KW, methods=["gp_pg"])
+    kw = dict(REPRODUCE_KW, methods=["gp_pg"], keep_checkpoints=True)
     first = R.reproduce(out_dir=str(tmp_path), progress=lambda m: None, **kw)
     ckpt, kern = tmp_path / "checkpoint_gp_pg.npz", tmp_path / "kernels.npz"
     ckpt.write_bytes(b"not a zip file")
@@ -159,14 +165,17 @@ def test_a_repeated_run_loads_its_programs_from_the_compile_cache(tmp_path):
             env={k: v for k, v in os.environ.items()
                  if k != "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"})
         _check_cli_run(proc, tmp_path / name, "float64", "guided_direction")  # the float64 CLI run
-        assert f"compilation cache: {cache}" in proc.stderr
+        assert f"compilation cache: {keyed}" in proc.stderr
         counts = re.search(r"compilation cache: (\d+) of (\d+) program\(s\) loaded from .*?, "
                            r"(\d+) compiled, (\d+) of them written", proc.stderr)
         assert counts, proc.stderr[-3000:]
         loaded, requests, compiled, written = map(int, counts.groups())
         assert loaded + compiled == requests and compiled == written  # every program is cached
-        return {p: os.stat(cache / p).st_mtime_ns for p in os.listdir(cache)}, requests, loaded
+        return {p: os.stat(os.path.join(keyed, p)).st_mtime_ns for p in os.listdir(keyed)}, \
+            requests, loaded
 
+    keyed = runtime.compile_cache_dir(str(cache))  # this CPU type's programs
+    assert os.path.dirname(keyed) == str(cache)
     entries, cold_requests, _ = run("cold")
     assert entries, "nothing was written to the compilation cache"
     warm_entries, warm_requests, warm_loaded = run("warm")
@@ -187,5 +196,83 @@ def test_compile_cache_counter_counts_jax_monitoring_events():
     assert (counter.requests, counter.loaded, counter.written) == (5, 2, 1)
     line = counter.summary("/c", 1.0)
     assert line.startswith("compilation cache: 2 of 5 program(s) loaded from /c, 3 compiled, 1 of")
-    assert "openxla/xla#44565" in line  # programs were loaded: the loader's false alarm explained
+
+
+def test_the_compile_cache_is_kept_per_cpu_type():
+    """One directory per CPU type and jaxlib build, the same in every process of this machine."""
+    key = runtime.cpu_key()
+    assert re.fullmatch(r"[\w.-]+-[0-9a-f]{12}", key) and os.sep not in key
+    assert runtime.compile_cache_dir("/c") == os.path.join("/c", key)
+    proc = _python("from gpguided_jax import runtime; print(runtime.cpu_key())")
+    assert proc.returncode == 0 and proc.stdout.strip() == key
+
+
+def test_drop_stderr_lines_drops_the_matching_lines_of_native_code_too():
+    """Lines written to file descriptor 2 (as XLA's C++ logging does) and through sys.stderr, in
+    order; only the matching ones are dropped."""
+    code = ("import os, re, sys\n"
+            "from gpguided_jax import runtime\n"
+            "runtime.drop_stderr_lines(re.compile(rb'false alarm'))\n"
+            "os.write(2, b'native one\\nE cpu_aot_loader.cc:1] a false alarm\\n')\n"
+            "print('python two', file=sys.stderr, flush=True)\n"
+            "os.write(2, b'native three\\n')\n")
+    proc = _python(code)
+    assert proc.returncode == 0
+    assert proc.stderr.splitlines() == ["native one", "python two", "native three"]
+    alarms = (b"E1203 18:11:58.192149   16209 cpu_aot_loader.cc:220] Loading XLA:CPU AOT result. "
+              b"Target machine feature +prefer-no-gather is not  supported on the host machine.",
+              b"W1203 18:13:29.433365   16785 pjrt_executable.cc:642] Assume version compatibility. "
+              b"PjRt-IFRT does not track XLA executable versions.")
+    for line in alarms:  # XLA's own lines, as jaxlib prints them
+        assert runtime._LOADER_FALSE_ALARMS.search(line)
+    assert not runtime._LOADER_FALSE_ALARMS.search(b"E cpu_aot_loader.cc:220] something else")
+
+
+def test_an_unusable_or_busy_out_is_refused_in_one_line(tmp_path, capsys):
+    """--out a file, a path under a file, or a directory another run holds: one line, exit 1."""
+    from gpguided_jax import checkpoints
+
+    (tmp_path / "file").write_text("")
+    for out, message in ((tmp_path / "file", "exists and is not a directory"),
+                         (tmp_path / "file" / "sub", "cannot write to")):
+        with pytest.raises(SystemExit) as exc:
+            cli.main(["reproduce", "--preset", "tiny", "--out", str(out), "--compile-cache", "none"])
+        assert message in str(exc.value) and str(exc.value).startswith("gpguided reproduce: error:")
+        assert "\n" not in str(exc.value)
+    with checkpoints.open_out_dir(str(tmp_path / "busy")):  # another run holds it
+        with pytest.raises(checkpoints.OutDirError, match="another run is writing to"):
+            with checkpoints.open_out_dir(str(tmp_path / "busy")):
+                pass
+    with checkpoints.open_out_dir(str(tmp_path / "busy")):  # released at the end of the run
+        pass
+
+
+def test_ctrl_c_says_how_to_resume(monkeypatch, capsys):
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_reproduce", interrupted)
+    assert cli.main(["reproduce", "--preset", "tiny", "--out", "somewhere"]) == 130
+    err = capsys.readouterr().err.strip()
+    assert err == ("gpguided reproduce: interrupted; run the same command again to resume from the "
+                   "checkpoints in somewhere")
+
+
+def test_help_shows_the_defaults(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["reproduce", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    for default in ("(default: paper)", "(default: 10)", "(default: 1000)", "(default: float64)",
+                    "(default: 50)", "(default: auto)", "(default: shared)"):
+        assert default in out, default
+
+
+def test_the_eta_leaves_out_the_first_chunk():
+    """The first chunk of a call compiles its program: no ETA from it; the rate after it."""
+    cfg = config.preset("tiny", method="reinforce")
+    rec = T.UpdateRecord(*[np.zeros((2, 3)) for _ in T.RECORD_FIELDS])
+    first = R._chunk_progress(cfg, rec, 2, 3, None, 4.2)
+    assert "first chunk in 4.2s" in first and "ETA after the next chunk" in first
+    later = R._chunk_progress(cfg, rec, 2, 3, 1.5, 4.2)
+    assert f"ETA {(cfg.num_updates - 3) / 1.5:.0f}s" in later and "1.5 updates/s" in later
     assert "44565" not in runtime.CompileCacheCounter().summary("/c", 1.0)
