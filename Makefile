@@ -19,8 +19,11 @@ CONSISTENCY_SEEDS := $(shell seq $(SEED_START) $$(($(SEED_START) + 9)))
 $(STAMP): pyproject.toml requirements.lock
 	python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade "pip>=24"
-	$(PY) -m pip install --quiet -r requirements.lock
+	# the lock pins every package, dependencies included: no resolver (pip check verifies it), and
+	# modules are byte-compiled when first imported rather than all at install
+	$(PY) -m pip install --quiet --no-deps --no-compile -r requirements.lock
 	$(PY) -m pip install --quiet --no-deps -e .
+	$(PY) -m pip check
 	touch $(STAMP)
 
 run: $(STAMP)
@@ -67,7 +70,7 @@ demo: $(STAMP)
 	$(VENV)/bin/gpguided demo --out $(OUT)/demo
 
 test: $(STAMP)
-	$(PY) -m pytest -q -n 2 --dist loadgroup tests
+	$(PY) -m pytest -q -n 2 --dist loadgroup --durations=15 tests
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check gpguided_jax experiments tests

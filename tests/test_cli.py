@@ -161,8 +161,9 @@ def test_a_repeated_run_loads_its_programs_from_the_compile_cache(tmp_path):
             capture_output=True, text=True, timeout=600, cwd=ROOT,
             # the command's own default caches every program (with JAX's, only those that take
             # over 1 s to compile: a program near that threshold can be written by one run and
-            # not the other)
-            env={k: v for k, v in os.environ.items()
+            # not the other); compiled fast, as the other end-to-end tests (the cache keys on the
+            # flags, and both runs use the same)
+            env={k: v for k, v in fast_compile_env().items()
                  if k != "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"})
         _check_cli_run(proc, tmp_path / name, "float64", "guided_direction")  # the float64 CLI run
         assert f"compilation cache: {keyed}" in proc.stderr

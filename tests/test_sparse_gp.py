@@ -540,7 +540,10 @@ def test_sweep_over_age_penalty_is_one_vmap():
 
 def test_non_finite_pairs_are_skipped():
     xs, ys = _data(20, 7)
-    state = sparse_gp.update_batch(sparse_gp.init(10, 4), jnp.array(xs), jnp.array(ys), _hyper(), 0)
+    # compiled (op by op, every operation of the loops would be compiled on its own)
+    update_batch = jax.jit(sparse_gp.update_batch)
+    update = jax.jit(sparse_gp.update)
+    state = update_batch(sparse_gp.init(10, 4), jnp.array(xs), jnp.array(ys), _hyper(), 0)
     bad_inputs = [
         (np.array([np.nan, 0.0, 0.0, 0.0]), 1.0),
         (np.array([0.0, np.inf, 0.0, 0.0]), 1.0),
@@ -548,7 +551,7 @@ def test_non_finite_pairs_are_skipped():
         (np.zeros(4), -np.inf),
     ]
     for x, y in bad_inputs:
-        out = sparse_gp.update(state, jnp.array(x), jnp.array(y), _hyper(), 3)
+        out = update(state, jnp.array(x), jnp.array(y), _hyper(), 3)
         for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(state), strict=True):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     # In a batch: the same as the batch without the bad pairs, and `valid=False` pads likewise.
@@ -558,9 +561,9 @@ def test_non_finite_pairs_are_skipped():
     ys_bad[7] = np.inf
     keep = np.ones(12, bool)
     keep[[3, 7]] = False
-    a = sparse_gp.update_batch(state, jnp.array(xs_bad), jnp.array(ys_bad), _hyper(), 1)
-    b = sparse_gp.update_batch(state, jnp.array(xs2[keep]), jnp.array(ys2[keep]), _hyper(), 1)
-    c = sparse_gp.update_batch(
+    a = update_batch(state, jnp.array(xs_bad), jnp.array(ys_bad), _hyper(), 1)
+    b = update_batch(state, jnp.array(xs2[keep]), jnp.array(ys2[keep]), _hyper(), 1)
+    c = update_batch(
         state, jnp.array(xs2), jnp.array(ys2), _hyper(), 1, valid=jnp.array(keep)
     )
     for la, lb, lc in zip(jax.tree.leaves(a), jax.tree.leaves(b), jax.tree.leaves(c), strict=True):

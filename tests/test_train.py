@@ -18,19 +18,26 @@ from gpguided_jax import train as T
 KEYS = jax.random.split(jax.random.PRNGKey(0), 2)
 
 
+TINY_TRACES: dict = {}  # method -> how often its tiny run was traced
+
+
 @pytest.fixture(scope="session")
 def tiny_runs():
-    """Every method's tiny run, computed once: the tests that use it are in one xdist group
-    (`make test` runs `--dist loadgroup`), so that one worker computes it, not each, and the
-    fixture is session-scoped, so that the worker does not recompute it whenever other modules'
-    tests come in between."""
+    """Every method's tiny run, computed once, as the CPU default runs it: each seed's own program
+    one after another on one device (`sharding.per_seed_program`, 'map'). The tests that use it
+    are in one xdist group (`make test` runs `--dist loadgroup`), so that one worker computes it,
+    not each, and the fixture is session-scoped, so that the worker does not recompute it
+    whenever other modules' tests come in between. `TINY_TRACES` counts each program's traces."""
     out = {}
+    mesh = sharding.make_mesh(1)
     for m in C.METHODS:
-        cfg = C.preset("tiny", method=m)
-        # the seeds one after another, as the CPU default runs them (`lax.map`; vmapped training:
-        # test_sweep_over_traced_field_is_one_program, test_two_host_devices_equal_one): the four
-        # programs lower and compile faster than as vmap
-        fn = jax.jit(functools.partial(jax.lax.map, T.make_train(cfg)))
+        train = T.make_train(C.preset("tiny", method=m))
+
+        def counted(key, train=train, m=m):
+            TINY_TRACES[m] = TINY_TRACES.get(m, 0) + 1  # runs only while tracing
+            return train(key)
+
+        fn = sharding.per_seed_program(counted, mesh, "map")
         out[m] = (fn, fn(KEYS))
     return out
 
@@ -57,31 +64,32 @@ def test_every_method_runs_with_finite_records(tiny_runs, method):
 
 
 @pytest.mark.xdist_group("tiny_runs")
-@pytest.mark.parametrize("method", ["reinforce", "guided_direction"])
-def test_same_key_bitwise_identical_and_seeds_differ(tiny_runs, method):
+@pytest.mark.parametrize("method", ["reinforce", "guided_variance", "guided_direction"])
+def test_same_key_bitwise_identical_no_recompile_and_seeds_differ(tiny_runs, method):
+    """A second call of the compiled run gives the same records bit for bit and does not trace
+    (nor compile) again; the two seeds differ."""
     fn, (_, rec) = tiny_runs[method]
     _, rec2 = fn(KEYS)
+    assert TINY_TRACES[method] == 1
     for a, b in zip(rec, rec2):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     r = np.asarray(rec.mean_reward)
     assert not np.array_equal(r[0], r[1])
 
 
-def test_second_call_does_not_recompile():
-    cfg = C.preset("tiny", method="guided_variance")
-    train = T.make_train(cfg)
-    traces = []
-
-    def counted(state):
-        traces.append(1)  # runs only while tracing
-        return train.run_chunk(state, cfg, 2)
-
-    chunk = jax.jit(jax.vmap(counted))
-    state = jax.jit(jax.vmap(train.init))(KEYS)
-    state, _ = chunk(state)
-    state, _ = chunk(state)
-    # a traced field changed in value (not in shape) must not recompile either
-    assert len(traces) == 1
+@pytest.mark.xdist_group("tiny_runs")
+def test_per_seed_program_map_equals_one_seed_alone(tiny_runs):
+    """The CPU default runs each seed's own program: a batch gives each seed exactly what it gets
+    alone (jit of the unbatched function)."""
+    train = T.make_train(C.preset("tiny", method="guided_variance"))
+    _, (_, batch) = tiny_runs["guided_variance"]
+    alone = jax.jit(lambda k: train(k)[1].mean_reward)
+    for i in range(len(KEYS)):
+        np.testing.assert_array_equal(np.asarray(batch.mean_reward)[i], np.asarray(alone(KEYS[i])))
+    mesh = sharding.make_mesh(1)
+    assert sharding.resolve_seed_loop("auto", mesh) == "map"
+    with pytest.raises(ValueError, match="seed_loop"):
+        sharding.resolve_seed_loop("pmap", mesh)
 
 
 def test_sweep_over_traced_field_is_one_program():
@@ -235,22 +243,6 @@ def test_devices_for_seeds_keeps_the_load_and_minimises_padding():
         assert got * -(-seeds // got) - seeds < -(-seeds // got)  # less than one device's padding
     with pytest.raises(ValueError):
         sharding.devices_for_seeds(0, 2)
-
-
-def test_per_seed_program_map_equals_one_seed_alone():
-    """The CPU default runs each seed's own program: a batch of 3 gives each seed exactly what it
-    gets alone (jit of the unbatched function)."""
-    cfg = C.preset("tiny", method="guided_variance")
-    train = T.make_train(cfg)
-    mesh = sharding.make_mesh(1)
-    keys = sharding.seed_keys([3, 4, 5])
-    assert sharding.resolve_seed_loop("auto", mesh) == "map"
-    batch = sharding.per_seed_program(lambda k: train(k)[1].mean_reward, mesh, "map")(keys)
-    alone = jax.jit(lambda k: train(k)[1].mean_reward)
-    for i in range(3):
-        np.testing.assert_array_equal(np.asarray(batch)[i], np.asarray(alone(keys[i])))
-    with pytest.raises(ValueError, match="seed_loop"):
-        sharding.resolve_seed_loop("pmap", mesh)
 
 
 def test_learnable_sigma_is_clipped_to_its_bounds():
