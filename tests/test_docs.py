@@ -15,6 +15,7 @@ import subprocess
 import sys
 
 import pytest
+from conftest import fast_compile_env
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 spec = importlib.util.spec_from_file_location(
@@ -97,10 +98,11 @@ def _quick_start():
 
 
 def test_the_readme_quick_start_runs_as_printed(tmp_path):
-    """Executed exactly as printed, in a fresh process with the repository on the path."""
+    """Executed exactly as printed, in a fresh process with the repository on the path (compiled
+    fast, as the other end-to-end tests: `conftest.fast_compile_env`)."""
     script = tmp_path / "quick_start.py"
     script.write_text(_quick_start())
-    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = fast_compile_env(PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.pop("JAX_ENABLE_X64", None)
     proc = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True,
                           text=True, timeout=300)
