@@ -263,9 +263,11 @@ def compiled_gp_methods_program(preset: str, methods, mesh, seed_loop: str, keys
     return compiled, time.perf_counter() - t0, runs
 
 
-def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "paper") -> dict:
-    """The hyperparameter fit and each method's whole run, compiled as `gpguided reproduce`
-    compiles them (`sharding.per_seed_program` over the seed mesh), timed apart from compilation."""
+def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "paper",
+                methods=config_lib.METHODS) -> dict:
+    """The hyperparameter fit and the whole run of each of `methods` in its own program, and the
+    three GP methods' shared program, compiled as `gpguided reproduce` compiles them
+    (`sharding.per_seed_program` over the seed mesh), timed apart from compilation."""
     mesh, keys = seed_mesh(seeds)
     out: dict = {"seeds": seeds, "devices": [str(d) for d in mesh.devices.flat],
                  "seed_loop": sharding.resolve_seed_loop("auto", mesh), "methods": {}}
@@ -302,7 +304,7 @@ def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "pap
         steps = seeds * cfg.num_updates * cfg.episodes_per_update * cfg.episode_length
         return {"compile_s": compile_s, "run_s": t, "seed_steps_per_s": steps / t["median"]}
 
-    for method in config_lib.METHODS:
+    for method in methods:
         out["methods"][method] = one(method)
 
     # The GP methods as `gpguided reproduce` runs them by default: one program, compiled once.
@@ -372,8 +374,9 @@ def run(*, repeats: int = 3, seeds: int = 10, numpy_updates: int = 50, quick: bo
                             capacity=20 if quick else 100, numpy_points=100 if quick else 1500)
     progress("bench: training")
     preset = "tiny" if quick else "paper"
+    # quick: each method's own program for REINFORCE and gp_pg alone (the ratio's two sides)
     report["train"] = bench_train(repeats, 2 if quick else seeds, 1 if quick else numpy_updates,
-                                  preset)
+                                  preset, ("reinforce", "gp_pg") if quick else config_lib.METHODS)
     if paper_run:
         progress("bench: the whole reproduce command, cold and warm")
         # quick (the tests): the command timed once, with REINFORCE alone, whose compile is the

@@ -23,7 +23,8 @@ def test_gpguided_bench_quick_writes_the_report_the_readme_table_is_made_from(tm
         assert s["runs"] == runs and 0 < s["min"] <= s["median"] <= s["max"], s
 
     t = report["train"]
-    for m in ("reinforce", "gp_pg", "guided_variance", "guided_direction"):
+    assert list(t["methods"]) == ["reinforce", "gp_pg"]  # quick: the ratio's two sides alone
+    for m in t["methods"]:
         check_stats(t["methods"][m]["run_s"])
         assert t["methods"][m]["compile_s"] > 0
     shared = t["gp_methods_program"]  # the GP methods as reproduce runs them: one program
