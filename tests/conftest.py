@@ -1,8 +1,9 @@
 """Shared test set-up.
 
 * JAX's 64-bit mode is on (the package leaves it to the user; float32 tests pass float32 arrays or
-  `dtype="float32"` explicitly, and test_cli.py's `test_cli_runs_in_float32` runs the command line
-  with the mode off).
+  `dtype="float32"` explicitly, and test_cli.py's
+  `test_a_repeated_run_loads_its_programs_from_the_compile_cache` runs the command line in
+  float32 with the mode off).
 * One LAPACK thread per test worker, as the command line runs (`runtime.single_threaded_lapack`):
   with `pytest -n 2` on 2 cores, OpenBLAS's default of one thread per core per call
   oversubscribed the cores in every hyperparameter fit.

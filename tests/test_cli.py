@@ -112,18 +112,6 @@ def _check_cli_run(proc, out, dtype, method, kept=False):
     assert not leftovers, leftovers
 
 
-def test_cli_runs_in_float32(tmp_path):
-    """The whole pipeline from the command line in float32, with JAX's x64 mode off (float64:
-    `test_a_repeated_run_loads_its_programs_from_the_compile_cache`)."""
-    out = tmp_path / "float32"
-    proc = subprocess.run(
-        [sys.executable, "-m", "gpguided_jax.cli", "reproduce", "--preset", "tiny", "--seeds", "2",
-         "--methods", "reinforce", "guided_variance", "--dtype", "float32", "--chunk-size", "3",
-         "--keep-checkpoints", "--out", str(out)], capture_output=True, text=True, timeout=600,
-        cwd=ROOT, env=fast_compile_env())
-    _check_cli_run(proc, out, "float32", "guided_variance", kept=True)
-
-
 def test_corrupt_checkpoint_and_kernels_are_set_aside(tmp_path):
     kw = dict(REPRODUCE_KW, methods=["gp_pg"], keep_checkpoints=True)
     first = R.reproduce(out_dir=str(tmp_path), progress=lambda m: None, **kw)
@@ -148,16 +136,19 @@ def test_corrupt_checkpoint_and_kernels_are_set_aside(tmp_path):
 
 
 def test_a_repeated_run_loads_its_programs_from_the_compile_cache(tmp_path):
-    """The persistent compilation cache on this CPU and jax: the second process loads what the
-    first compiled (loading a much larger program crashes; design: docs/design.md#decisions),
-    and its results are the same bit for bit."""
+    """The whole pipeline from the command line, in float32 with JAX's x64 mode off (float64: the
+    multi-device runs of tests/test_train.py and tests/test_distributed.py), twice with one
+    persistent compilation cache: the second process loads what the first compiled (loading a
+    much larger program crashes; design: docs/design.md#decisions), and its results are the same
+    bit for bit. The first keeps its checkpoints (every float of its state in float32), the
+    second deletes them."""
     cache = tmp_path / "cache"
 
-    def run(name):
+    def run(name, *extra):
         proc = subprocess.run(
             [sys.executable, "-m", "gpguided_jax.cli", "reproduce", "--preset", "tiny", "--seeds",
-             "2", "--methods", "reinforce", "guided_direction", "--chunk-size", "3", "--out",
-             str(tmp_path / name), "--compile-cache", str(cache)],
+             "2", "--methods", "reinforce", "guided_variance", "--dtype", "float32", "--chunk-size",
+             "3", "--out", str(tmp_path / name), "--compile-cache", str(cache), *extra],
             capture_output=True, text=True, timeout=600, cwd=ROOT,
             # the command's own default caches every program (with JAX's, only those that take
             # over 1 s to compile: a program near that threshold can be written by one run and
@@ -165,7 +156,7 @@ def test_a_repeated_run_loads_its_programs_from_the_compile_cache(tmp_path):
             # flags, and both runs use the same)
             env={k: v for k, v in fast_compile_env().items()
                  if k != "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"})
-        _check_cli_run(proc, tmp_path / name, "float64", "guided_direction")  # the float64 CLI run
+        _check_cli_run(proc, tmp_path / name, "float32", "guided_variance", kept=bool(extra))
         assert f"compilation cache: {keyed}" in proc.stderr
         counts = re.search(r"compilation cache: (\d+) of (\d+) program\(s\) loaded from .*?, "
                            r"(\d+) compiled, (\d+) of them written", proc.stderr)
@@ -177,7 +168,7 @@ def test_a_repeated_run_loads_its_programs_from_the_compile_cache(tmp_path):
 
     keyed = runtime.compile_cache_dir(str(cache))  # this CPU type's programs
     assert os.path.dirname(keyed) == str(cache)
-    entries, cold_requests, _ = run("cold")
+    entries, cold_requests, _ = run("cold", "--keep-checkpoints")
     assert entries, "nothing was written to the compilation cache"
     warm_entries, warm_requests, warm_loaded = run("warm")
     assert warm_entries == entries  # a program compiled again would be written again
