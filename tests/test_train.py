@@ -18,34 +18,62 @@ from gpguided_jax import train as T
 KEYS = jax.random.split(jax.random.PRNGKey(0), 2)
 
 
-TINY_TRACES: dict = {}  # method -> how often its tiny run was traced
+TINY_TRACES: dict = {}  # program ("reinforce" or "gp_methods") -> how often it was traced
+
+
+@functools.cache
+def _tiny_gp_program():
+    """(train, shared) of the tiny preset's GP methods, made once and outside any trace."""
+    base = C.preset("tiny", method="gp_pg")
+    return T.make_train(base), T.make_gp_methods_train(base)
+
+
+def _tiny_gp_run(key, index, cfg):
+    """One seed's whole tiny run of the GP method `index` (config `cfg`) through the three GP
+    methods' one program (`train.make_gp_methods_train`), as `gpguided reproduce` runs them."""
+    train, shared = _tiny_gp_program()
+    state = train.init(key, cfg)  # the hyperparameter fit, then the initial state
+    return shared(state, index, cfg, train.config.num_updates)
+
+
+def _tiny_gp_args(method):
+    """`_tiny_gp_run`'s method index and config, one row per seed of KEYS."""
+    per_seed = lambda x: np.broadcast_to(np.asarray(x), (len(KEYS),) + np.shape(x))  # noqa: E731
+    return (per_seed(np.int32(T.GP_METHODS.index(method))),
+            jax.tree_util.tree_map(per_seed, T.gp_methods_key(C.preset("tiny", method=method))))
 
 
 @pytest.fixture(scope="session")
 def tiny_runs():
-    """Every method's tiny run, computed once, as the CPU default runs it: each seed's own program
-    one after another on one device (`sharding.per_seed_program`, 'map'). The tests that use it
-    are in one xdist group (`make test` runs `--dist loadgroup`), so that one worker computes it,
-    not each, and the fixture is session-scoped, so that the worker does not recompute it
-    whenever other modules' tests come in between. `TINY_TRACES` counts each program's traces."""
-    out = {}
+    """Every method's tiny run, computed once, as `gpguided reproduce` runs it on a CPU: each
+    seed's own program one after another on one device (`sharding.per_seed_program`, 'map'),
+    REINFORCE with its own program and the three GP methods with their one shared program (each
+    method's own program against it: test_gp_methods_program_runs_each_method_as_its_own_program).
+    The tests that use it are in one xdist group (`make test` runs `--dist loadgroup`), so that
+    one worker computes it, not each, and the fixture is session-scoped, so that the worker does
+    not recompute it whenever other modules' tests come in between. `TINY_TRACES` counts each
+    program's traces. Returns method -> (run, its arguments, its (state, records))."""
     mesh = sharding.make_mesh(1)
-    for m in C.METHODS:
-        train = T.make_train(C.preset("tiny", method=m))
+    reinforce = T.make_train(C.preset("tiny", method="reinforce"))
+    _tiny_gp_program()
 
-        def counted(key, train=train, m=m):
-            TINY_TRACES[m] = TINY_TRACES.get(m, 0) + 1  # runs only while tracing
-            return train(key)
+    def counted(name, fn):
+        def run(*args):
+            TINY_TRACES[name] = TINY_TRACES.get(name, 0) + 1  # runs only while tracing
+            return fn(*args)
+        return sharding.per_seed_program(run, mesh, "map")
 
-        fn = sharding.per_seed_program(counted, mesh, "map")
-        out[m] = (fn, fn(KEYS))
-    return out
+    runs = {"reinforce": (counted("reinforce", reinforce), (KEYS,))}
+    gp_program = counted("gp_methods", _tiny_gp_run)
+    for m in T.GP_METHODS:
+        runs[m] = (gp_program, (KEYS, *_tiny_gp_args(m)))
+    return {m: (fn, args, fn(*args)) for m, (fn, args) in runs.items()}
 
 
 @pytest.mark.xdist_group("tiny_runs")
 @pytest.mark.parametrize("method", C.METHODS)
 def test_every_method_runs_with_finite_records(tiny_runs, method):
-    _, (state, rec) = tiny_runs[method]
+    _, _, (state, rec) = tiny_runs[method]
     cfg = C.preset("tiny")
     for name, v in rec._asdict().items():
         v = np.asarray(v)
@@ -67,10 +95,11 @@ def test_every_method_runs_with_finite_records(tiny_runs, method):
 @pytest.mark.parametrize("method", ["reinforce", "guided_variance", "guided_direction"])
 def test_same_key_bitwise_identical_no_recompile_and_seeds_differ(tiny_runs, method):
     """A second call of the compiled run gives the same records bit for bit and does not trace
-    (nor compile) again; the two seeds differ."""
-    fn, (_, rec) = tiny_runs[method]
-    _, rec2 = fn(KEYS)
-    assert TINY_TRACES[method] == 1
+    (nor compile) again, and the three GP methods' program was traced once for the three; the
+    two seeds differ."""
+    fn, args, (_, rec) = tiny_runs[method]
+    _, rec2 = fn(*args)
+    assert TINY_TRACES == {"reinforce": 1, "gp_methods": 1}
     for a, b in zip(rec, rec2):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     r = np.asarray(rec.mean_reward)
@@ -81,11 +110,11 @@ def test_same_key_bitwise_identical_no_recompile_and_seeds_differ(tiny_runs, met
 def test_per_seed_program_map_equals_one_seed_alone(tiny_runs):
     """The CPU default runs each seed's own program: a batch gives each seed exactly what it gets
     alone (jit of the unbatched function)."""
-    train = T.make_train(C.preset("tiny", method="guided_variance"))
-    _, (_, batch) = tiny_runs["guided_variance"]
-    alone = jax.jit(lambda k: train(k)[1].mean_reward)
+    _, (keys, index, cfg), (_, batch) = tiny_runs["guided_variance"]
+    alone = jax.jit(lambda *a: _tiny_gp_run(*a)[1].mean_reward)
     for i in range(len(KEYS)):
-        np.testing.assert_array_equal(np.asarray(batch.mean_reward)[i], np.asarray(alone(KEYS[i])))
+        one_seed = jax.tree_util.tree_map(lambda x, i=i: x[i], (keys, index, cfg))
+        np.testing.assert_array_equal(np.asarray(batch.mean_reward)[i], np.asarray(alone(*one_seed)))
     mesh = sharding.make_mesh(1)
     assert sharding.resolve_seed_loop("auto", mesh) == "map"
     with pytest.raises(ValueError, match="seed_loop"):
