@@ -28,6 +28,11 @@ import numpy as np
 
 from gpguided_jax import distributed
 
+try:
+    import fcntl
+except ImportError:  # not POSIX: output directories are not locked
+    fcntl = None
+
 # Part of every digest: bump it when the state's pytree or the compiled programs change, and the
 # checkpoints and fitted priors written before are ignored.
 CHECKPOINT_VERSION = 4
@@ -75,10 +80,6 @@ def open_out_dir(out_dir: str):
     except OSError as e:
         raise OutDirError(f"cannot write to {out_dir}: {e.strerror or e}") from None
     with lock:
-        try:
-            import fcntl
-        except ImportError:  # not POSIX: no lock
-            fcntl = None
         if fcntl is not None:
             try:
                 fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -36,13 +36,6 @@ def _tiny_gp_run(key, index, cfg):
     return shared(state, index, cfg, train.config.num_updates)
 
 
-def _tiny_gp_args(method):
-    """`_tiny_gp_run`'s method index and config, one row per seed of KEYS."""
-    per_seed = lambda x: np.broadcast_to(np.asarray(x), (len(KEYS),) + np.shape(x))  # noqa: E731
-    return (per_seed(np.int32(T.GP_METHODS.index(method))),
-            jax.tree_util.tree_map(per_seed, T.gp_methods_key(C.preset("tiny", method=method))))
-
-
 @pytest.fixture(scope="session")
 def tiny_runs():
     """Every method's tiny run, computed once, as `gpguided reproduce` runs it on a CPU: each
@@ -66,7 +59,8 @@ def tiny_runs():
     runs = {"reinforce": (counted("reinforce", reinforce), (KEYS,))}
     gp_program = counted("gp_methods", _tiny_gp_run)
     for m in T.GP_METHODS:
-        runs[m] = (gp_program, (KEYS, *_tiny_gp_args(m)))
+        # the method's index and config, one row per seed, as `reproduce` passes them
+        runs[m] = (gp_program, (KEYS, *R.gp_method_args(C.preset("tiny", method=m), len(KEYS), mesh)))
     return {m: (fn, args, fn(*args)) for m, (fn, args) in runs.items()}
 
 
