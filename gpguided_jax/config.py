@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpguided_jax import pendulum
+from gpguided_jax import pendulum, tasks
 
 METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction")
 CONTROLLERS = ("linear", "rbf")
@@ -48,6 +48,7 @@ STATIC_FIELDS = (
     "eval_episodes",
     "success_hold_time",
     "gp_stride",
+    "env",
 )
 
 
@@ -88,6 +89,8 @@ class TrainConfig:
         at 200 Hz, whose neighbouring steps carry almost the same information.
       success_hold_time: seconds the pendulum must stay upright at the end of an episode for a
         swing-up success (`swingup.success`); episodes shorter than that never succeed.
+      env: the environment, 'pendulum' (the paper's, default), 'gymnax:<id>' or 'brax:<name>'
+        (`gpguided_jax.tasks`; one continuous action).
 
     Traced fields (leaves; sweepable by vmap):
       learning_rate: eta of the ascent step.
@@ -133,6 +136,7 @@ class TrainConfig:
     eval_episodes: int = 0
     gp_stride: int = 1
     success_hold_time: float = 1.0
+    env: str = "pendulum"
     # traced
     learning_rate: Any = 2e-4
     max_grad_norm: Any = 300.0
@@ -248,6 +252,12 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     if not any(isinstance(getattr(cfg, f), jax.core.Tracer) for f in ("min_std", "max_std")):
         if np.any(np.asarray(cfg.min_std, float) > np.asarray(cfg.max_std, float)):
             _fail("min_std", f"must be <= max_std, got {cfg.min_std!r} > {cfg.max_std!r}")
+    if not isinstance(cfg.env, str):
+        _fail("env", f"must be an environment name, got {cfg.env!r}")
+    try:
+        tasks.make_task(cfg.env)
+    except tasks.TaskError as e:
+        _fail("env", str(e))
     if not isinstance(cfg.pendulum, pendulum.PendulumParams):
         _fail("pendulum", f"must be PendulumParams (pendulum.make_params), got {type(cfg.pendulum)}")
     return cfg
@@ -263,8 +273,20 @@ def check_dtype_available(dtype: str) -> None:
         )
 
 
-def make_config(*, pendulum_overrides: dict | None = None, **fields) -> TrainConfig:
-    """A validated `TrainConfig`; traced fields and the physics are cast to arrays of `dtype`."""
+def control_interval(cfg: TrainConfig) -> float:
+    """Seconds per control step of `cfg`'s environment (the pendulum's: its traced `dt`)."""
+    if cfg.env == "pendulum":
+        return float(np.asarray(cfg.pendulum.dt))
+    return tasks.make_task(cfg.env).dt
+
+
+def make_config(*, pendulum_overrides: dict | None = None, discount_horizon: float | None = None,
+                **fields) -> TrainConfig:
+    """A validated `TrainConfig`; traced fields and the physics are cast to arrays of `dtype`.
+
+    `discount_horizon`: the discount as a horizon in seconds, gamma = exp(-dt / horizon) with dt
+    the environment's control interval (`tasks.discount_for_horizon`); it replaces `discount`.
+    """
     unknown = set(fields) - {f.name for f in dataclasses.fields(TrainConfig)}
     if unknown:
         raise TypeError(f"unknown TrainConfig field(s): {sorted(unknown)}")
@@ -276,6 +298,12 @@ def make_config(*, pendulum_overrides: dict | None = None, **fields) -> TrainCon
             dtype=jnp.dtype(dtype) if dtype in DTYPES else None, **(pendulum_overrides or {}))
     cfg = TrainConfig(**fields)
     validate(cfg)
+    if discount_horizon is not None:
+        try:
+            cfg = cfg.replace(discount=tasks.discount_for_horizon(discount_horizon,
+                                                                  control_interval(cfg)))
+        except ValueError as e:
+            _fail("discount", str(e))
     return cfg.replace(
         pendulum=jax.tree_util.tree_map(lambda a: jnp.asarray(a, cfg.dtype), cfg.pendulum),
         **{f: jnp.asarray(getattr(cfg, f), cfg.dtype) for f in TRACED_FIELDS if f != "pendulum"},

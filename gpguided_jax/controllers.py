@@ -76,11 +76,12 @@ def _preactivation(params: Params, psi: Params) -> jax.Array:
     return sum(jax.tree_util.tree_leaves(products))
 
 
-def _make_controller(features_fn, zeros_fn, u_max: float) -> Controller:
-    """Builds the squashed controller c = u_max tanh(<theta_c, psi(s)>) for a feature map."""
+def make_squashed(features_fn, zeros_fn, u_max: float, state_dim: int = 2) -> Controller:
+    """Builds the squashed controller c = u_max tanh(<theta_c, psi(s)>) for a feature map psi =
+    `features_fn(state)` of a (state_dim,) state, with the zero parameters `zeros_fn(dtype)`."""
 
     def features(state):
-        chex.assert_shape(state, (2,))
+        chex.assert_shape(state, (state_dim,))
         return features_fn(state)
 
     def apply(params, state):
@@ -120,7 +121,7 @@ def linear_controller(u_max: float = 5.0) -> Controller:
     def zeros_fn(dtype):
         return LinearParams(weights=jnp.zeros((4,), dtype))
 
-    return _make_controller(features_fn, zeros_fn, float(u_max))
+    return make_squashed(features_fn, zeros_fn, float(u_max))
 
 
 def rbf_grid(num_angles: int = 8, num_velocities: int = 5, max_velocity: float = 6.0):
@@ -185,7 +186,7 @@ def rbf_controller(
     def zeros_fn(dtype):
         return RBFParams(weights=jnp.zeros((num_centres,), dtype), bias=jnp.zeros((), dtype))
 
-    return _make_controller(features_fn, zeros_fn, float(u_max))
+    return make_squashed(features_fn, zeros_fn, float(u_max))
 
 
 CONTROLLERS = {"linear": linear_controller, "rbf": rbf_controller}

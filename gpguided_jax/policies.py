@@ -23,7 +23,8 @@ each of them.
   their normalised Q values and the selected index; the sampling variance).
 * The number K of Gibbs candidates is static (closed over by `gibbs_policy`).
 
-Everything is written for one state (2,) and one scalar action; batch with `jax.vmap`. Sampled
+Everything is written for one state (an observation vector; the pendulum's is [phi, omega]) and
+one scalar action; batch with `jax.vmap`. Sampled
 actions are NOT clipped (the environment clips the torque); log-probabilities and scores are those
 of the unclipped sample.
 
@@ -43,6 +44,7 @@ from gpguided_jax import _random, kernels, sparse_gp
 from gpguided_jax import controllers as controllers_lib
 
 _LOG_2PI = 1.8378770664093453  # log(2 pi)
+_PENDULUM_FEATURES = kernels.state_action_features  # the GP input unless a task gives its own
 
 
 class PolicyParams(NamedTuple):
@@ -184,13 +186,13 @@ def _scale_tree(tree, scalar):
 # --------------------------------------------------------------------------------------------
 
 
-def gp_latent_variance(gp, kernel, state, action):
+def gp_latent_variance(gp, kernel, state, action, features=_PENDULUM_FEATURES):
     """sigma^2(x*) = max(gamma, 0) + |Z k|^2 at x* = features(s, a*) (eq. 6; `sparse_gp.predict`)."""
-    x = kernels.state_action_features(state, action)
+    x = features(state, action)
     return sparse_gp.predict(gp, x, kernel)[1]
 
 
-def gp_latent_variance_and_grad(gp, kernel, state, action):
+def gp_latent_variance_and_grad(gp, kernel, state, action, features=_PENDULUM_FEATURES):
     """sigma^2(x*) and d sigma^2 / d a* at x* = features(s, a*) (eq. 18-19, C held constant).
 
     In the square-root form of `gpguided_jax.sparse_gp`, sigma^2 = k** - |T k|^2 + |Z k|^2 (the
@@ -201,14 +203,13 @@ def gp_latent_variance_and_grad(gp, kernel, state, action):
     d k**/d a* = 0 for the stationary SE kernel, and for the SE-ARD kernel
       dk_i/d a* = -k_i (a* - b_{i,a}) / l_a^2,
     with b_{i,a} the action coordinate of basis vector i and l_a its length-scale (the action is
-    the last coordinate of `kernels.state_action_features`). Where the residual k** - |T k|^2 is
-    clipped at 0 (rounding only) its derivative is 0.
+    the last coordinate of `features`, `kernels.state_action_features` by default). Where the
+    residual k** - |T k|^2 is clipped at 0 (rounding only) its derivative is 0.
 
     Returns:
       (variance, d_variance_d_action), scalars.
     """
-    chex.assert_shape(state, (2,))
-    x = kernels.state_action_features(state, action)
+    x = features(state, action)
     kernel = jax.tree.map(lambda a: jnp.asarray(a, gp.alpha.dtype), kernel)
     k = sparse_gp.masked_kernel_vector(gp, x, kernel)
     kxx = kernels.kernel_diag(x, kernel)
@@ -226,18 +227,18 @@ def gp_latent_variance_and_grad(gp, kernel, state, action):
     return variance, dvariance
 
 
-def gp_mean(gp, kernel, state, action):
+def gp_mean(gp, kernel, state, action, features=_PENDULUM_FEATURES):
     """Q_GP(s, a) = m0 + k(x)^T alpha, the GP predictive mean (eq. 5; m0 the prior mean)."""
-    x = kernels.state_action_features(state, action)
+    x = features(state, action)
     return gp.prior_mean + sparse_gp.masked_kernel_vector(gp, x, kernel) @ gp.alpha
 
 
-def gp_means_over_actions(gp, kernel, state, actions):
+def gp_means_over_actions(gp, kernel, state, actions, features=_PENDULUM_FEATURES):
     """Q_GP(s, a_j) for K actions at one state: (K,). The kernel's state part
     sum_d<3 ((x_d - b_id) / l_d)^2 is computed once for all actions (`gp_mean` for each a_j,
     to rounding)."""
     kernel = jax.tree.map(lambda a: jnp.asarray(a, gp.alpha.dtype), kernel)
-    x = kernels.state_action_features(state, jnp.zeros((), state.dtype))
+    x = features(state, jnp.zeros((), state.dtype))
     z_state = (x[:-1] - gp.basis_vectors[:, :-1]) / kernel.lengthscales[:-1]
     state_part = jnp.sum(z_state * z_state, axis=1)  # (S,)
     z_action = (actions[:, None] - gp.basis_vectors[None, :, -1]) / kernel.lengthscales[-1]
@@ -251,16 +252,16 @@ def _floored(value, floor):
     return jnp.where(value > floor, value, floor)
 
 
-def guided_variance(controller, controller_params, state, ctx):
+def guided_variance(controller, controller_params, state, ctx, features=_PENDULUM_FEATURES):
     """sigma^2_GP(s) = max(lambda_v sigma^2(x*), floor), x* = (s, c(s; theta_c)) (eq. 16)."""
     mean_action = controller.apply(controller_params, state)
     # the value of gp_latent_variance_and_grad (equal to gp_latent_variance up to rounding), so
     # that sampling, log_prob and the score all use the same sigma^2_GP bit for bit
-    latent = gp_latent_variance_and_grad(ctx.gp, ctx.kernel, state, mean_action)[0]
+    latent = gp_latent_variance_and_grad(ctx.gp, ctx.kernel, state, mean_action, features)[0]
     return _floored(ctx.variance_scale * latent, ctx.variance_floor)
 
 
-def guided_variance_and_grad(controller, controller_params, state, ctx):
+def guided_variance_and_grad(controller, controller_params, state, ctx, features=_PENDULUM_FEATURES):
     """sigma^2_GP, its gradient with respect to theta_c (eq. 18-19), and c, dc/dtheta_c.
 
     grad sigma^2_GP = lambda_v d sigma^2/d a* |_{a* = c(s)} * dc/dtheta_c, with C constant.
@@ -273,7 +274,7 @@ def guided_variance_and_grad(controller, controller_params, state, ctx):
       controller_params.
     """
     mean_action, grad_mean = controller.value_and_grad(controller_params, state)
-    latent, dlatent_da = gp_latent_variance_and_grad(ctx.gp, ctx.kernel, state, mean_action)
+    latent, dlatent_da = gp_latent_variance_and_grad(ctx.gp, ctx.kernel, state, mean_action, features)
     scaled = ctx.variance_scale * latent
     variance = _floored(scaled, ctx.variance_floor)
     dvariance_da = jnp.where(
@@ -300,7 +301,7 @@ def fixed_noise_policy(controller: controllers_lib.Controller) -> Policy:
     """
 
     def sample(key, theta, state, ctx):
-        chex.assert_shape(state, (2,))
+        chex.assert_rank(state, 1)
         mean_action = controller.apply(theta.controller, state)
         std = jnp.exp(theta.log_std)
         action = mean_action + std * _random.normal(key, (), mean_action.dtype)
@@ -316,7 +317,7 @@ def fixed_noise_policy(controller: controllers_lib.Controller) -> Policy:
 
     def grad_log_prob(theta, state, action, ctx, aux):
         del ctx, aux
-        chex.assert_shape(state, (2,))
+        chex.assert_rank(state, 1)
         mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
         variance = jnp.exp(2.0 * theta.log_std)
         diff = action - mean_action
@@ -331,7 +332,7 @@ def fixed_noise_policy(controller: controllers_lib.Controller) -> Policy:
 
     def act(key, theta, state, ctx):
         del ctx
-        chex.assert_shape(state, (2,))
+        chex.assert_rank(state, 1)
         mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
         std = jnp.exp(theta.log_std)
         action = mean_action + std * _random.normal(key, (), mean_action.dtype)
@@ -352,7 +353,7 @@ def fixed_noise_policy(controller: controllers_lib.Controller) -> Policy:
 # --------------------------------------------------------------------------------------------
 
 
-def guided_variance_policy(controller: controllers_lib.Controller) -> Policy:
+def guided_variance_policy(controller: controllers_lib.Controller, features=_PENDULUM_FEATURES) -> Policy:
     """a ~ N(c(s), sigma^2_GP(s)), sigma^2_GP = max(lambda_v sigma^2(s, c(s)), floor) (eq. 16).
 
     Score (eq. 17, with the factor 1/2 that the printed equation lacks; design:
@@ -367,9 +368,9 @@ def guided_variance_policy(controller: controllers_lib.Controller) -> Policy:
     """
 
     def sample(key, theta, state, ctx):
-        chex.assert_shape(state, (2,))
+        chex.assert_rank(state, 1)
         mean_action = controller.apply(theta.controller, state)
-        variance = guided_variance(controller, theta.controller, state, ctx)
+        variance = guided_variance(controller, theta.controller, state, ctx, features)
         action = mean_action + jnp.sqrt(variance) * _random.normal(
             key, (), mean_action.dtype
         )
@@ -381,7 +382,7 @@ def guided_variance_policy(controller: controllers_lib.Controller) -> Policy:
     def log_prob(theta, state, action, ctx, aux):
         del aux
         mean_action = controller.apply(theta.controller, state)
-        variance = guided_variance(controller, theta.controller, state, ctx)
+        variance = guided_variance(controller, theta.controller, state, ctx, features)
         return _gaussian_log_prob(action, mean_action, variance)
 
     def score(theta, action, variance, grad_variance, mean_action, grad_mean):
@@ -396,7 +397,7 @@ def guided_variance_policy(controller: controllers_lib.Controller) -> Policy:
     def grad_log_prob(theta, state, action, ctx, aux):
         del aux
         variance, grad_variance, mean_action, grad_mean = guided_variance_and_grad(
-            controller, theta.controller, state, ctx
+            controller, theta.controller, state, ctx, features
         )
         return score(theta, action, variance, grad_variance, mean_action, grad_mean)
 
@@ -407,9 +408,9 @@ def guided_variance_policy(controller: controllers_lib.Controller) -> Policy:
         return jnp.sqrt(aux.variance)
 
     def act(key, theta, state, ctx):
-        chex.assert_shape(state, (2,))
+        chex.assert_rank(state, 1)
         variance, grad_variance, mean_action, grad_mean = guided_variance_and_grad(
-            controller, theta.controller, state, ctx
+            controller, theta.controller, state, ctx, features
         )
         std = jnp.sqrt(variance)
         action = mean_action + std * _random.normal(key, (), mean_action.dtype)
@@ -448,11 +449,11 @@ def gibbs_energy(candidates, normalised_q, mean_action, energy_width):
     return normalised_q * jnp.exp(-0.5 * diff * diff / (energy_width * energy_width))
 
 
-def candidate_variance(controller, controller_params, state, ctx):
+def candidate_variance(controller, controller_params, state, ctx, features=_PENDULUM_FEATURES):
     """sigma^2_cand = max(candidate_scale * sigma^2(s, c(s)), candidate_floor): the model's
     confidence at (s, c(s)) (paper, text after eq. 22), floored and scaled."""
     mean_action = controller.apply(controller_params, state)
-    latent = gp_latent_variance(ctx.gp, ctx.kernel, state, mean_action)
+    latent = gp_latent_variance(ctx.gp, ctx.kernel, state, mean_action, features)
     return _floored(ctx.candidate_scale * latent, ctx.candidate_floor)
 
 
@@ -491,7 +492,8 @@ def _gibbs_spread(candidates, probs):
     return jnp.sqrt(jnp.maximum(probs @ (offsets * offsets), 0.0))
 
 
-def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 32) -> Policy:
+def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 32,
+                 features=_PENDULUM_FEATURES) -> Policy:
     """Gibbs policy over K GP-scored candidate actions (eq. 20-22; design: docs/design.md#policies).
 
     Sampling: a_j ~ N(c(s), sigma^2_cand), j = 1..K; Q~_j = min-max normalised Q_GP(s, a_j);
@@ -515,15 +517,15 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
 
     def draw(key, theta, state, ctx):
         """The candidates, their energies and the selection; also (E, dc/dtheta_c) for the score."""
-        chex.assert_shape(state, (2,))
+        chex.assert_rank(state, 1)
         key_candidates, key_select = jax.random.split(key)
         mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
-        latent = gp_latent_variance(ctx.gp, ctx.kernel, state, mean_action)
+        latent = gp_latent_variance(ctx.gp, ctx.kernel, state, mean_action, features)
         variance = _floored(ctx.candidate_scale * latent, ctx.candidate_floor)
         candidates = mean_action + jnp.sqrt(variance) * _random.normal(
             key_candidates, (num_candidates,), mean_action.dtype
         )
-        normalised_q = normalise_q(gp_means_over_actions(ctx.gp, ctx.kernel, state, candidates))
+        normalised_q = normalise_q(gp_means_over_actions(ctx.gp, ctx.kernel, state, candidates, features))
         energy, probs = gibbs_distribution(candidates, normalised_q, mean_action, ctx)
         index = gibbs_select(key_select, energy, ctx.inverse_temperature)
         aux = PolicyAux(mean_action=mean_action, variance=variance, candidates=candidates,
@@ -551,7 +553,7 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
 
     def grad_log_prob(theta, state, action, ctx, aux):
         del action
-        chex.assert_shape(state, (2,))
+        chex.assert_rank(state, 1)
         mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
         energy, probs = gibbs_distribution(aux.candidates, aux.normalised_q, mean_action, ctx)
         return _gibbs_score(theta, aux._replace(mean_action=mean_action), energy, probs, grad_mean,
@@ -576,7 +578,8 @@ POLICY_NAMES = ("fixed_noise", "guided_variance", "gibbs")
 
 
 def make_policy(
-    name: str, controller: controllers_lib.Controller, *, num_candidates: int = 32
+    name: str, controller: controllers_lib.Controller, *, num_candidates: int = 32,
+    features=_PENDULUM_FEATURES,
 ) -> Policy:
     """Looks a policy up by its static name.
 
@@ -585,11 +588,13 @@ def make_policy(
         (eq. 16-19) or 'gibbs' (eq. 20-22; alias 'guided_direction').
       controller: the deterministic controller.
       num_candidates: K for the Gibbs policy (static; ignored otherwise).
+      features: (state, action) -> the GP's input, the action last (`tasks.Task.features`; the
+        default is the pendulum's (sin phi, cos phi, omega, a)).
     """
     if name == "fixed_noise":
         return fixed_noise_policy(controller)
     if name == "guided_variance":
-        return guided_variance_policy(controller)
+        return guided_variance_policy(controller, features)
     if name in ("gibbs", "guided_direction"):
-        return gibbs_policy(controller, num_candidates)
+        return gibbs_policy(controller, num_candidates, features)
     raise ValueError(f"unknown policy {name!r}; choose from {POLICY_NAMES}")

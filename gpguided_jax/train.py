@@ -32,7 +32,7 @@ import numpy as np
 import optax
 
 from gpguided_jax import controllers as controllers_lib
-from gpguided_jax import estimators, hyperfit, kernels, pendulum, policies, sparse_gp, swingup
+from gpguided_jax import estimators, hyperfit, kernels, pendulum, policies, sparse_gp, swingup, tasks
 from gpguided_jax.config import TrainConfig, validate
 
 _POLICY_OF_METHOD = {
@@ -41,7 +41,7 @@ _POLICY_OF_METHOD = {
     "guided_variance": "guided_variance",
     "guided_direction": "gibbs",
 }
-FEATURE_DIM = 4  # (sin phi, cos phi, omega, a)
+FEATURE_DIM = 4  # the pendulum's GP input (sin phi, cos phi, omega, a); a task's: task.feature_dim
 
 
 class TrainState(NamedTuple):
@@ -97,6 +97,9 @@ class UpdateRecord(NamedTuple):
       eval_success_rate: the same for `eval_episodes` fresh episodes of the deterministic
         controller c(s) (0 when eval_episodes = 0).
       eval_reward: their mean reward per step (0 when eval_episodes = 0).
+      mean_return: the undiscounted return of the update's (exploring) episodes, their mean.
+      eval_return: the undiscounted return of the `eval_episodes` deterministic episodes, their
+        mean (0 when eval_episodes = 0): the task's own measure of a policy.
     """
 
     mean_reward: jax.Array
@@ -112,6 +115,8 @@ class UpdateRecord(NamedTuple):
     success_rate: jax.Array
     eval_success_rate: jax.Array
     eval_reward: jax.Array
+    mean_return: jax.Array
+    eval_return: jax.Array
 
 
 # The names of a run's records (results.npz, checkpoints, summaries): field -> (seeds, updates).
@@ -119,12 +124,13 @@ RECORD_FIELDS = UpdateRecord._fields
 
 
 class Episode(NamedTuple):
-    states: jax.Array  # (H, 2), the state each action was taken in
-    next_states: jax.Array  # (H, 2), the state it led to
+    states: jax.Array  # (H, obs_dim), the observation each action was taken at
+    next_states: jax.Array  # (H, obs_dim), the observation it led to
     actions: jax.Array  # (H,)
-    rewards: jax.Array  # (H,)
-    scores: policies.PolicyParams  # leaves (H, ...)
+    rewards: jax.Array  # (H,), 0 after the episode's end
+    scores: policies.PolicyParams  # leaves (H, ...), 0 after the episode's end
     exploration_std: jax.Array  # (H,)
+    alive: jax.Array | None  # (H,) bool, True before the end; None for a task that never ends
 
 
 class Program(NamedTuple):
@@ -135,12 +141,14 @@ class Program(NamedTuple):
       controller: the deterministic controller c(s; theta_c).
       policy: the method's policy (fixed noise, guided variance or Gibbs).
       behaviour: the fixed-noise policy that collects the hyperparameter-fit data.
+      task: the environment (`tasks.make_task(config.env)`).
     """
 
     config: TrainConfig
     controller: controllers_lib.Controller
     policy: policies.Policy
     behaviour: policies.Policy
+    task: tasks.Task
 
     @property
     def dtype(self):
@@ -148,8 +156,8 @@ class Program(NamedTuple):
 
 
 def make_controller(cfg: TrainConfig) -> controllers_lib.Controller:
-    u_max = 5.0  # the controller's squashing range; the environment clips at params.max_torque
-    return controllers_lib.make_controller(cfg.controller, u_max=u_max)
+    """The controller of `cfg.controller` on the observations of `cfg.env`."""
+    return tasks.make_task(cfg.env).make_controller(cfg.controller)
 
 
 def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
@@ -160,15 +168,16 @@ def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
 
 def make_program(cfg: TrainConfig) -> Program:
     validate(cfg)
-    controller = make_controller(cfg)
+    task = tasks.make_task(cfg.env)
+    controller = task.make_controller(cfg.controller)
     policy = policies.make_policy(
-        _POLICY_OF_METHOD[cfg.method], controller, num_candidates=cfg.num_candidates
-    )
-    return Program(cfg, controller, policy, policies.make_policy("fixed_noise", controller))
+        _POLICY_OF_METHOD[cfg.method], controller, num_candidates=cfg.num_candidates,
+        features=task.features)
+    return Program(cfg, controller, policy, policies.make_policy("fixed_noise", controller), task)
 
 
-def _features(states, actions):
-    return jax.vmap(kernels.state_action_features)(states, actions)
+def _features(prog: Program, states, actions):
+    return jax.vmap(prog.task.features)(states, actions)
 
 
 def policy_context(cfg: TrainConfig, gp, kernel) -> policies.PolicyContext:
@@ -192,25 +201,68 @@ def policy_context(cfg: TrainConfig, gp, kernel) -> policies.PolicyContext:
 # ------------------------------------------------------------------------------------------------
 
 
+def run_episode(prog: Program, key, act, cfg: TrainConfig, num_steps: int):
+    """One episode of `num_steps` steps of the task, acting with `act(key, obs) -> (action, out)`.
+
+    Returns (obs, next_obs, actions, rewards, alive, outs), each with a leading (num_steps,) axis;
+    `alive` is None for a task that never ends early. After an episode's end the environment stays
+    in its last state, and the rewards are 0 (module notes of `gpguided_jax.tasks`).
+    """
+    task = prog.task
+    key_reset, key_steps = jax.random.split(key)
+    env_state, obs = task.reset(key_reset, cfg)
+
+    def body(carry, step_key):
+        env_state, obs, alive = carry
+        key_act, key_env = jax.random.split(step_key)
+        a, out = act(key_act, obs)
+        new_state, new_obs, r, done = task.step(key_env, env_state, a, cfg)
+        if not task.terminates:
+            return (new_state, new_obs, alive), (obs, new_obs, a, r, out)
+        keep = lambda new, old: jnp.where(alive, new, old)  # noqa: E731
+        carry = (jax.tree_util.tree_map(keep, new_state, env_state), keep(new_obs, obs),
+                 alive & ~done)
+        return carry, (obs, new_obs, a, jnp.where(alive, r, jnp.zeros_like(r)), (out, alive))
+
+    keys = jax.random.split(key_steps, num_steps)
+    _, (o, o_next, a, r, out) = jax.lax.scan(body, (env_state, obs, jnp.ones((), bool)), keys)
+    alive = None
+    if task.terminates:
+        out, alive = out
+    return o, o_next, a, r, alive, out
+
+
 def rollout(prog: Program, key, theta, ctx, policy, cfg: TrainConfig) -> Episode:
     """Step 1: one episode of `episode_length` steps with `policy` (GP in `ctx` held fixed)."""
-    key_reset, key_steps = jax.random.split(key)
-    s0 = pendulum.reset(key_reset, cfg.pendulum)
 
-    def body(s, step_key):
-        key_act, key_reward = jax.random.split(step_key)
-        a, _, score, std = policy.act(key_act, theta, s, ctx)
-        s_next, r = pendulum.step(key_reward, s, a, cfg.pendulum)
-        return s_next, (s, s_next, a, r, score, std)
+    def act(k, obs):
+        a, _, score, std = policy.act(k, theta, obs, ctx)
+        return a, (score, std)
 
-    keys = jax.random.split(key_steps, prog.config.episode_length)
-    _, (s, s_next, a, r, scores, std) = jax.lax.scan(body, s0, keys)
-    return Episode(s, s_next, a, r, scores, std)
+    o, o_next, a, r, alive, (scores, std) = run_episode(prog, key, act, cfg,
+                                                        prog.config.episode_length)
+    if alive is not None:
+        scores = jax.tree_util.tree_map(
+            lambda g: g * alive.reshape((-1,) + (1,) * (g.ndim - 1)).astype(g.dtype), scores)
+    return Episode(o, o_next, a, r, scores, std, alive)
 
 
-def episode_success(prog: Program, next_states, cfg: TrainConfig) -> jax.Array:
-    """`swingup.success` of one episode's visited states (False if it is shorter than the hold
-    time)."""
+def _alive_mean(values, alive):
+    """Mean of `values` over the steps before the episodes' ends (all of them if alive is None)."""
+    if alive is None:
+        return jnp.mean(values)
+    w = alive.astype(values.dtype)
+    return jnp.sum(values * w) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def episode_success(prog: Program, next_states, cfg: TrainConfig, rewards=None) -> jax.Array:
+    """Whether one episode succeeded: on the pendulum, `swingup.success` of its visited states
+    (False if it is shorter than the hold time); on another task, its return reaching the task's
+    threshold (False without one)."""
+    if prog.task.name != "pendulum":
+        if prog.task.threshold is None or rewards is None:
+            return jnp.zeros((), bool)
+        return jnp.sum(rewards) >= prog.task.threshold
     # the hold time in steps is static: it uses the control interval of make_train's config
     dt = float(np.asarray(prog.config.pendulum.dt))
     if swingup.hold_steps(dt, prog.config.success_hold_time) > next_states.shape[0]:
@@ -220,41 +272,49 @@ def episode_success(prog: Program, next_states, cfg: TrainConfig) -> jax.Array:
 
 
 def evaluate(prog: Program, key, theta, cfg: TrainConfig):
-    """`eval_episodes` fresh episodes of the deterministic controller c(s; theta_c):
-    (success rate, mean reward per step); zeros when eval_episodes = 0."""
+    """`eval_episodes` fresh episodes of the deterministic controller c(s; theta_c): (success rate,
+    mean reward per step, mean undiscounted return); zeros when eval_episodes = 0."""
     n = prog.config.eval_episodes
     if n == 0:
         zero = jnp.zeros((), prog.dtype)
-        return zero, zero
+        return zero, zero, zero
 
-    def policy_fn(k, s):
+    def act(k, obs):
         del k
-        return prog.controller.apply(theta.controller, s)
+        return prog.controller.apply(theta.controller, obs), ()
 
-    traj = pendulum.batch_rollout(jax.random.split(key, n), cfg.pendulum, policy_fn,
-                                  prog.config.episode_length)
-    # batch_rollout's states are the states the actions were taken in; the last visited state is
-    # final_state: the visited states are states[1:] followed by final_state.
-    visited = jnp.concatenate([traj.states[:, 1:], traj.final_state[:, None]], axis=1)
-    ok = jax.vmap(lambda v: episode_success(prog, v, cfg))(visited)
-    return jnp.mean(ok.astype(prog.dtype)), jnp.mean(traj.rewards)
+    keys = jax.random.split(key, n)
+    if prog.task.name == "pendulum":
+        traj = pendulum.batch_rollout(keys, cfg.pendulum, lambda k, s: act(k, s)[0],
+                                      prog.config.episode_length)
+        # batch_rollout's states are the states the actions were taken in; the last visited state
+        # is final_state: the visited states are states[1:] followed by final_state.
+        visited = jnp.concatenate([traj.states[:, 1:], traj.final_state[:, None]], axis=1)
+        rewards, alive = traj.rewards, None
+    else:
+        _, visited, _, rewards, alive, _ = jax.vmap(
+            lambda k: run_episode(prog, k, act, cfg, prog.config.episode_length))(keys)
+    ok = jax.vmap(lambda v, r: episode_success(prog, v, cfg, r))(visited, rewards)
+    return (jnp.mean(ok.astype(prog.dtype)), _alive_mean(rewards, alive),
+            jnp.mean(jnp.sum(rewards, axis=1)))
 
 
-def take_in_episode(gp, kernel, xs, returns, update_index, cfg: TrainConfig):
+def take_in_episode(gp, kernel, xs, returns, update_index, cfg: TrainConfig, valid=None):
     """Step 2: the GP takes in one episode's (x_t, Ret_t); rejected if the result is unhealthy.
 
     Returns:
       (gp, guard_fired, health): the new GP (or the old one if `sparse_gp.check` failed), 0/1,
-      and the `sparse_gp.Health` of the new GP.
+      and the `sparse_gp.Health` of the new GP. `valid`: (N,) bool, the pairs to take in (the
+      steps before the episode's end); None: all.
     """
     new_gp = sparse_gp.update_batch(
-        gp, xs, returns, kernel, update_index,
+        gp, xs, returns, kernel, update_index, valid=valid,
         novelty_tol=cfg.novelty_tol,
         age_penalty=cfg.age_penalty,
         age_scale=cfg.age_scale,
         age_fn=cfg.age_fn,
     )
-    health = sparse_gp.check(new_gp, kernel, xs, returns)
+    health = sparse_gp.check(new_gp, kernel, xs, returns, valid)
     gp = jax.tree_util.tree_map(lambda n, o: jnp.where(health.ok, n, o), new_gp, gp)
     return gp, (~health.ok).astype(jnp.int32), health
 
@@ -263,7 +323,7 @@ def gradient_estimate(prog: Program, state: TrainState, eps: Episode, returns, g
     """Step 3: eq. 4 (REINFORCE) or eq. 9 (Q_GP of the updated GP), optionally with a baseline."""
     static = prog.config
     if static.uses_gp:
-        feats = jax.vmap(_features)(eps.states, eps.actions)
+        feats = jax.vmap(lambda s, a: _features(prog, s, a))(eps.states, eps.actions)
         predict_mean = jax.vmap(jax.vmap(lambda x: sparse_gp.predict(gp, x, state.kernel)[0]))
         weights = predict_mean(feats)
     else:
@@ -272,9 +332,11 @@ def gradient_estimate(prog: Program, state: TrainState, eps: Episode, returns, g
     if static.use_baseline:
         if static.uses_gp:
             apply = jax.vmap(jax.vmap(lambda s: prog.controller.apply(state.theta.controller, s)))
-            baseline = predict_mean(jax.vmap(_features)(eps.states, apply(eps.states)))
+            baseline = predict_mean(jax.vmap(lambda s, a: _features(prog, s, a))(
+                eps.states, apply(eps.states)))
         else:
             baseline = jnp.broadcast_to(returns.mean(axis=0, keepdims=True), returns.shape)
+    # the scores after an episode's end are 0 (`rollout`), so those steps add nothing
     return estimators.policy_gradient(eps.scores, weights, baseline)
 
 
@@ -305,9 +367,10 @@ def _take_in(prog: Program, cfg: TrainConfig, state: TrainState, gp, ep: Episode
     fired, error_ratio = jnp.zeros((), jnp.int32), jnp.zeros((), prog.dtype)
     if static.uses_gp:
         k = static.gp_stride  # every k-th step of the episode joins the GP (1: all)
+        valid = None if ep.alive is None else ep.alive[::k]
         gp, fired, health = take_in_episode(
-            gp, state.kernel, _features(ep.states, ep.actions)[::k], returns[::k],
-            state.update_index, cfg)
+            gp, state.kernel, _features(prog, ep.states, ep.actions)[::k], returns[::k],
+            state.update_index, cfg, valid)
         error_ratio = health.mean_error_ratio
     return gp, fired, error_ratio
 
@@ -407,11 +470,11 @@ def one_update(prog: Program, cfg: TrainConfig, state: TrainState, roll_out=None
 
     n_bv = sparse_gp.num_basis_vectors(gp)
     fresh = jnp.sum(gp.mask & (gp.timestamps == t))
-    successes = jax.vmap(lambda v: episode_success(prog, v, cfg))(eps.next_states)
-    eval_success, eval_reward = evaluate(prog, key_eval, state.theta, cfg)
+    successes = jax.vmap(lambda v, r: episode_success(prog, v, cfg, r))(eps.next_states, eps.rewards)
+    eval_success, eval_reward, eval_return = evaluate(prog, key_eval, state.theta, cfg)
     record = UpdateRecord(
-        mean_reward=jnp.mean(eps.rewards),
-        exploration_std=jnp.mean(eps.exploration_std),
+        mean_reward=_alive_mean(eps.rewards, eps.alive),
+        exploration_std=_alive_mean(eps.exploration_std, eps.alive),
         grad_norm=grad_norm,
         grad_clipped=(finite & (grad_norm > cfg.max_grad_norm)).astype(jnp.int32),
         nonfinite_grad=(~finite).astype(jnp.int32),
@@ -423,6 +486,8 @@ def one_update(prog: Program, cfg: TrainConfig, state: TrainState, roll_out=None
         success_rate=jnp.mean(successes.astype(prog.dtype)),
         eval_success_rate=eval_success,
         eval_reward=eval_reward,
+        mean_return=jnp.mean(jnp.sum(eps.rewards, axis=1)),
+        eval_return=eval_return,
     )
     return TrainState(theta, opt_state, gp, state.kernel, key, t + 1), record
 
@@ -437,28 +502,38 @@ def initial_theta(prog: Program, cfg: TrainConfig) -> policies.PolicyParams:
 
 
 def collect(prog: Program, key, cfg: TrainConfig):
-    """(x, Ret) pairs from the initial fixed-noise policy: (n_episodes * H, 4), (n * H,)."""
+    """(x, Ret) pairs from the initial fixed-noise policy: (n_episodes * H, D), (n * H,), and
+    (n * H,) bool, which of them come before their episode's end (None for a task that never
+    ends early)."""
     theta = initial_theta(prog, cfg)
-    gp = sparse_gp.init(1, FEATURE_DIM, prog.dtype)
-    dummy_kernel = kernels.make_kernel_params(jnp.ones(FEATURE_DIM), dtype=prog.dtype)
+    d = prog.task.feature_dim
+    gp = sparse_gp.init(1, d, prog.dtype)
+    dummy_kernel = kernels.make_kernel_params(jnp.ones(d), dtype=prog.dtype)
     ctx = policy_context(cfg, gp, dummy_kernel)
     keys = jax.random.split(key, prog.config.hyperfit_episodes)
     eps = jax.vmap(lambda k: rollout(prog, k, theta, ctx, prog.behaviour, cfg))(keys)
     returns = jax.vmap(estimators.discounted_returns, in_axes=(0, None))(eps.rewards, cfg.discount)
-    xs = jax.vmap(_features)(eps.states, eps.actions).reshape(-1, FEATURE_DIM)
-    return xs, returns.reshape(-1)
+    xs = jax.vmap(lambda s, a: _features(prog, s, a))(eps.states, eps.actions).reshape(-1, d)
+    valid = None if eps.alive is None else eps.alive.reshape(-1)
+    return xs, returns.reshape(-1), valid
 
 
 def fit_subset(prog: Program, key, cfg: TrainConfig):
     """The hyperparameter fit's data: every collected (x, Ret) pair and the indices of the random
     subset of `hyperfit_subset` pairs the likelihood is taken on (None: all pairs, when there are
-    no more). Returns (xs, ys, idx)."""
+    no more) and which pairs come before their episode's end. Returns (xs, ys, idx, valid)."""
     key_data, key_subset = jax.random.split(key)
-    xs, ys = collect(prog, key_data, cfg)
+    xs, ys, valid = collect(prog, key_data, cfg)
     n = min(prog.config.hyperfit_subset, xs.shape[0])
+    if valid is not None:
+        # the subset is drawn from the pairs before their episode's end; with fewer of them than
+        # n, the subset repeats them (a repeated pair only sharpens the noise estimate slightly)
+        p = valid.astype(prog.dtype)
+        return xs, ys, jax.random.choice(key_subset, xs.shape[0], (n,), replace=True,
+                                         p=p / jnp.maximum(jnp.sum(p), 1.0)), valid
     if n == xs.shape[0]:
-        return xs, ys, None
-    return xs, ys, jax.random.choice(key_subset, xs.shape[0], (n,), replace=False)
+        return xs, ys, None, None
+    return xs, ys, jax.random.choice(key_subset, xs.shape[0], (n,), replace=False), None
 
 
 class FitData(NamedTuple):
@@ -482,8 +557,12 @@ class FitData(NamedTuple):
 def fit_data(prog: Program, key, cfg: TrainConfig) -> FitData:
     """`fit_subset`'s pairs with the returns centred on their mean (the kernel is fitted to centred
     returns), and the subset taken."""
-    xs, ys, idx = fit_subset(prog, key, cfg)
-    mean = jnp.mean(ys)
+    xs, ys, idx, valid = fit_subset(prog, key, cfg)
+    if valid is None:
+        mean = jnp.mean(ys)
+    else:
+        w = valid.astype(ys.dtype)
+        mean = jnp.sum(ys * w) / jnp.maximum(jnp.sum(w), 1.0)
     fit_xs, fit_ys = (xs, ys) if idx is None else (xs[idx], ys[idx])
     return FitData(xs, ys - mean, fit_xs, fit_ys - mean, mean)
 
@@ -504,14 +583,14 @@ def initial_state(prog: Program, key, cfg: TrainConfig, prior: GPPrior | None = 
         if static.uses_gp:
             prior = fit_prior(prog, key_fit, cfg)
         else:  # unused by REINFORCE
-            prior = GPPrior(kernels.make_kernel_params(jnp.ones(FEATURE_DIM), dtype=prog.dtype),
+            prior = GPPrior(kernels.make_kernel_params(jnp.ones(prog.task.feature_dim), dtype=prog.dtype),
                             jnp.zeros((), prog.dtype))
     prior = jax.tree_util.tree_map(lambda a: jnp.asarray(a, prog.dtype), prior)
     theta = initial_theta(prog, cfg)
     opt_state = make_optimizer(cfg).init(theta)
     # REINFORCE never reads its GP: a one-slot placeholder keeps the state's structure small.
     capacity = static.gp_capacity if static.uses_gp else 1
-    gp = sparse_gp.init(capacity, FEATURE_DIM, prog.dtype, prior_mean=prior.mean)
+    gp = sparse_gp.init(capacity, prog.task.feature_dim, prog.dtype, prior_mean=prior.mean)
     return TrainState(theta, opt_state, gp, prior.kernel, key_run, jnp.zeros((), jnp.int32))
 
 

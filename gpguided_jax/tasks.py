@@ -1,0 +1,326 @@
+"""Tasks: the environments Algorithm 1 trains on, behind one interface (design: docs/design.md#tasks).
+
+A `Task` is a bundle of pure functions over one episode's state, so that the training loop runs it
+inside `lax.scan` and `vmap` whatever the environment is:
+
+  env_state, obs = task.reset(key, cfg)
+  env_state, obs, reward, done = task.step(key, env_state, action, cfg)
+
+The action is one scalar; the policies act on the observation `obs` ((obs_dim,)); the GP's input is
+`task.features(obs, action)`, with the action as its last coordinate (the policies rely on it).
+
+Three kinds of task are supported (`make_task(name)`):
+
+* ``pendulum``: the paper's pendulum (`gpguided_jax.pendulum`), the default. The observation is
+  the state [phi, omega]; the controllers and the GP features are the paper's ones. Its physics are
+  the config's traced `pendulum` field.
+* ``gymnax:<id>``: a gymnax environment with a one-dimensional continuous action, used from gymnax
+  itself (``pip install gpguided_jax[gymnax]``): Pendulum-v1 and MountainCarContinuous-v0.
+  gymnax's `step_env` (without its automatic reset) steps it.
+* ``brax:<name>``: a brax environment through brax's own `Env` (``reset(rng)``, ``step(state,
+  action)``): inverted_pendulum and inverted_double_pendulum. brax's environments neither take a key
+  in `step` nor clip the action; the action is clipped to brax's range [-1, 1] before the step.
+
+Episodes have a fixed length (`TrainConfig.episode_length`). An environment that terminates early
+(a brax pendulum that falls, the car that reaches the goal) is frozen in its last state from then
+on: the training loop masks the steps after the end (`Episode.alive`), whose rewards are 0 and which
+enter neither the gradient nor the GP. Rewards are those the environment defines, accumulated
+undiscounted in `eval_return`.
+
+Observations of a gymnax or brax task are normalised, z = (obs - centre) / scale, with the mean and
+standard deviation of the observations that `PLACEMENT_EPISODES` episodes of uniformly random
+actions visit (drawn once, with a fixed key, when the task is made). The controllers act on z:
+`linear` is c(z) = u_max tanh(w^T (z, 1)); `rbf` has `RBF_CENTRES` centres chosen from those
+normalised observations by farthest-point sampling, and one width, the mean distance from a centre
+to its nearest neighbour. The GP's input is (z, a). u_max is the environment's action bound.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gpguided_jax import controllers as controllers_lib
+from gpguided_jax import kernels, pendulum
+
+GYMNAX_ENVS = ("Pendulum-v1", "MountainCarContinuous-v0")
+BRAX_ENVS = ("inverted_pendulum", "inverted_double_pendulum")
+SUPPORTED = ("pendulum", *(f"gymnax:{e}" for e in GYMNAX_ENVS), *(f"brax:{e}" for e in BRAX_ENVS))
+
+PLACEMENT_EPISODES = 16  # random-action episodes that place the normalisation and RBF centres
+PLACEMENT_KEY = 20120610  # their fixed key (the same placement for every seed and method)
+RBF_CENTRES = 32
+
+
+class TaskError(ValueError):
+    """An environment that Algorithm 1 cannot train on (unknown, or not a 1-d continuous action)."""
+
+
+class Task(NamedTuple):
+    """One environment behind the training loop's interface (module notes).
+
+    Attributes:
+      name: 'pendulum', 'gymnax:<id>' or 'brax:<name>'.
+      obs_dim: length of the observation.
+      dt: seconds per control step (the discount as a horizon, `discount_for_horizon`, uses it).
+      max_action: the action bound u_max; the controllers squash to (-u_max, u_max).
+      episode_length: the environment's own episode length in steps.
+      terminates: whether an episode can end before `episode_length` (static: the masking is only
+        traced for a task that can).
+      threshold: the episode return at which the task counts as solved (None: no threshold).
+      reset: (key, cfg) -> (env_state, obs).
+      step: (key, env_state, action, cfg) -> (env_state, obs, reward, done).
+      features: (obs, action) -> (feature_dim,) GP input, the action last.
+      feature_dim: length of the GP input.
+      make_controller: (name) -> `controllers.Controller` on observations ('linear' or 'rbf').
+      obs_centre, obs_scale: the normalisation z = (obs - centre) / scale (NumPy; zeros and ones
+        for the pendulum, whose controllers and features take the raw state).
+    """
+
+    name: str
+    obs_dim: int
+    dt: float
+    max_action: float
+    episode_length: int
+    terminates: bool
+    threshold: float | None
+    reset: Callable[..., Any]
+    step: Callable[..., Any]
+    features: Callable[[jax.Array, jax.Array], jax.Array]
+    feature_dim: int
+    make_controller: Callable[[str], controllers_lib.Controller]
+    obs_centre: np.ndarray
+    obs_scale: np.ndarray
+
+
+def discount_for_horizon(horizon_s: float, dt: float) -> float:
+    """gamma = exp(-dt / horizon): the discount whose returns weigh the future over `horizon_s`
+    seconds (the e-folding time), whatever the control rate. gamma = 0.99 at 200 Hz is a 0.5 s
+    horizon, at 20 Hz a 5 s one."""
+    if not horizon_s > 0:
+        raise ValueError(f"the discount horizon must be > 0 seconds, got {horizon_s!r}")
+    return float(np.exp(-dt / horizon_s))
+
+
+def horizon_of_discount(discount: float, dt: float) -> float:
+    """The horizon in seconds of a discount per step of dt seconds: -dt / log(gamma)."""
+    return float("inf") if discount >= 1.0 else float(-dt / np.log(discount))
+
+
+# ------------------------------------------------------------------------------------------------
+# The paper's pendulum.
+# ------------------------------------------------------------------------------------------------
+
+PENDULUM_U_MAX = 5.0  # the controllers' squashing range; the pendulum clips at params.max_torque
+
+
+def _pendulum_task() -> Task:
+    def reset(key, cfg):
+        s = pendulum.reset(key, cfg.pendulum)
+        return s, s
+
+    def step(key, env_state, action, cfg):
+        s, r = pendulum.step(key, env_state, action, cfg.pendulum)
+        return s, s, r, jnp.zeros((), bool)
+
+    return Task(
+        name="pendulum", obs_dim=2, dt=float(pendulum.DEFAULTS["dt"]), max_action=PENDULUM_U_MAX,
+        episode_length=50, terminates=False, threshold=None, reset=reset, step=step,
+        features=kernels.state_action_features, feature_dim=4,
+        make_controller=lambda name: controllers_lib.make_controller(name, u_max=PENDULUM_U_MAX),
+        obs_centre=np.zeros(2), obs_scale=np.ones(2))
+
+
+# ------------------------------------------------------------------------------------------------
+# gymnax and brax environments: adapters, placement of the normalisation and RBF centres.
+# ------------------------------------------------------------------------------------------------
+
+# Episode-return thresholds: gymnasium's for MountainCarContinuous-v0 (90) and the common -200 for
+# Pendulum-v1 (gymnasium defines none); brax's pendulums earn 1 per step for up to 1,000 steps as
+# gymnasium's MuJoCo ones do (InvertedPendulum-v4: 950); brax's double pendulum earns up to about 9.4
+# per step (10 minus distance and velocity penalties), gymnasium's InvertedDoublePendulum-v4 the
+# same, with the threshold 9,100.
+THRESHOLDS = {"gymnax:Pendulum-v1": -200.0, "gymnax:MountainCarContinuous-v0": 90.0,
+              "brax:inverted_pendulum": 950.0, "brax:inverted_double_pendulum": 9100.0}
+
+
+class _Adapter(NamedTuple):
+    obs_dim: int
+    dt: float
+    max_action: float
+    episode_length: int
+    reset: Callable  # key -> (env_state, obs, float32)
+    step: Callable  # (key, env_state, action) -> (env_state, obs, reward, done)
+
+
+def _gymnax_adapter(env_id: str) -> _Adapter:
+    try:
+        import gymnax
+    except ImportError as e:
+        raise TaskError(f"gymnax:{env_id} needs gymnax: pip install 'gpguided_jax[gymnax]' ({e})") from e
+    from gymnax.environments import spaces
+
+    if env_id not in gymnax.registered_envs:
+        raise TaskError(f"unknown environment 'gymnax:{env_id}'; {_supported_line()}")
+    env, params = gymnax.make(env_id)
+    space = env.action_space(params)
+    if not isinstance(space, spaces.Box) or int(np.prod(space.shape)) != 1:
+        kind = "a discrete" if isinstance(space, spaces.Discrete) else f"the {type(space).__name__}"
+        raise TaskError(f"gymnax:{env_id} has {kind} action space {getattr(space, 'shape', '')}; "
+                        f"{_supported_line()}")
+    max_action = float(np.max(np.abs([space.low, space.high])))
+
+    def reset(key):
+        obs, state = env.reset_env(key, params)
+        return state, obs
+
+    def step(key, state, action):
+        obs, state, reward, done, _ = env.step_env(key, state, jnp.reshape(action, (1,)), params)
+        return state, obs, reward, done
+
+    dt = float(getattr(params, "dt", 0.05 if env_id == "Pendulum-v1" else 1.0))
+    return _Adapter(int(np.prod(env.observation_space(params).shape)), dt, max_action,
+                    int(params.max_steps_in_episode), reset, step)
+
+
+def _brax_adapter(name: str) -> _Adapter:
+    from brax import envs
+
+    if name not in envs._envs:
+        raise TaskError(f"unknown environment 'brax:{name}'; {_supported_line()}")
+    env = envs.get_environment(name)
+    if env.action_size != 1:
+        raise TaskError(f"brax:{name} has {env.action_size} continuous actions, not one; "
+                        f"{_supported_line()}")
+
+    def reset(key):
+        s = env.reset(key)
+        return s, s.obs
+
+    def step(key, state, action):
+        del key  # brax's environments are deterministic given the state
+        a = jnp.clip(jnp.reshape(action, (1,)).astype(jnp.float32), -1.0, 1.0)
+        s = env.step(state, a)
+        return s, s.obs, s.reward, s.done > 0.5
+
+    return _Adapter(int(env.observation_size), float(env.dt), 1.0, 1000, reset, step)
+
+
+def _supported_line() -> str:
+    return ("Algorithm 1 trains on environments with one continuous action, such as "
+            + ", ".join(SUPPORTED))
+
+
+def _random_action_observations(adapter: _Adapter) -> np.ndarray:
+    """The observations (before the end of each episode) of `PLACEMENT_EPISODES` episodes of
+    uniformly random actions in [-u_max, u_max], in float32: (n, obs_dim)."""
+    def episode(key):
+        key_reset, key_steps = jax.random.split(key)
+        env_state, obs = adapter.reset(key_reset)
+
+        def body(carry, k):
+            env_state, obs, alive = carry
+            k_act, k_env = jax.random.split(k)
+            a = jax.random.uniform(k_act, (), jnp.float32, -adapter.max_action, adapter.max_action)
+            new_state, new_obs, _, done = adapter.step(k_env, env_state, a)
+            env_state = jax.tree_util.tree_map(lambda n, o: jnp.where(alive, n, o), new_state, env_state)
+            return (env_state, jnp.where(alive, new_obs, obs), alive & ~done), (obs, alive)
+
+        _, (obs_seq, alive) = jax.lax.scan(
+            body, (env_state, obs, jnp.ones((), bool)),
+            jax.random.split(key_steps, adapter.episode_length))
+        return obs_seq, alive
+
+    keys = jax.random.split(jax.random.key(PLACEMENT_KEY), PLACEMENT_EPISODES)
+    with jax.default_device(jax.devices("cpu")[0]):
+        obs, alive = jax.jit(jax.vmap(episode))(keys)
+    obs, alive = np.asarray(obs, np.float64), np.asarray(alive)
+    return obs.reshape(-1, obs.shape[-1])[alive.reshape(-1)]
+
+
+def farthest_point_centres(points: np.ndarray, n: int) -> np.ndarray:
+    """`n` of `points` chosen greedily, each the farthest from those chosen before (the first is
+    the point nearest the mean): an even cover of the visited region."""
+    chosen = [int(np.argmin(np.sum((points - points.mean(0)) ** 2, axis=1)))]
+    dist = np.sum((points - points[chosen[0]]) ** 2, axis=1)
+    for _ in range(min(n, len(points)) - 1):
+        j = int(np.argmax(dist))
+        chosen.append(j)
+        dist = np.minimum(dist, np.sum((points - points[j]) ** 2, axis=1))
+    return points[chosen]
+
+
+def _observation_controller(name: str, u_max: float, centre, scale, rbf_centres, rbf_width):
+    obs_dim = len(centre)
+
+    if name == "linear":
+        def features_fn(obs):
+            z = (obs - jnp.asarray(centre, obs.dtype)) / jnp.asarray(scale, obs.dtype)
+            return controllers_lib.LinearParams(weights=jnp.concatenate([z, jnp.ones((1,), obs.dtype)]))
+
+        def zeros_fn(dtype):
+            return controllers_lib.LinearParams(weights=jnp.zeros((obs_dim + 1,), dtype))
+    elif name == "rbf":
+        def features_fn(obs):
+            z = (obs - jnp.asarray(centre, obs.dtype)) / jnp.asarray(scale, obs.dtype)
+            d = (z[None, :] - jnp.asarray(rbf_centres, obs.dtype)) / rbf_width
+            return controllers_lib.RBFParams(weights=jnp.exp(-0.5 * jnp.sum(d * d, axis=-1)),
+                                             bias=jnp.ones((), obs.dtype))
+
+        def zeros_fn(dtype):
+            return controllers_lib.RBFParams(weights=jnp.zeros((len(rbf_centres),), dtype),
+                                             bias=jnp.zeros((), dtype))
+    else:
+        raise ValueError(f"unknown controller {name!r}; choose from {sorted(controllers_lib.CONTROLLERS)}")
+    return controllers_lib.make_squashed(features_fn, zeros_fn, u_max, state_dim=obs_dim)
+
+
+def _external_task(name: str, adapter: _Adapter) -> Task:
+    obs = _random_action_observations(adapter)
+    centre = obs.mean(axis=0)
+    scale = obs.std(axis=0)
+    scale = np.where(scale > 1e-6, scale, 1.0)  # a coordinate that never moved is left as it is
+    z = (obs - centre) / scale
+    rbf_centres = farthest_point_centres(z, RBF_CENTRES)
+    gaps = np.sqrt(np.sum((rbf_centres[:, None] - rbf_centres[None]) ** 2, axis=-1))
+    np.fill_diagonal(gaps, np.inf)
+    rbf_width = float(np.mean(np.min(gaps, axis=1))) if len(rbf_centres) > 1 else 1.0
+
+    def reset(key, cfg):
+        env_state, o = adapter.reset(key)
+        return env_state, jnp.asarray(o, cfg.dtype)
+
+    def step(key, env_state, action, cfg):
+        env_state, o, r, done = adapter.step(key, env_state, action)
+        return env_state, jnp.asarray(o, cfg.dtype), jnp.asarray(r, cfg.dtype), jnp.asarray(done, bool)
+
+    def features(o, action):
+        zz = (o - jnp.asarray(centre, o.dtype)) / jnp.asarray(scale, o.dtype)
+        return jnp.concatenate([zz, jnp.reshape(jnp.asarray(action, o.dtype), (1,))])
+
+    return Task(
+        name=name, obs_dim=adapter.obs_dim, dt=adapter.dt, max_action=adapter.max_action,
+        episode_length=adapter.episode_length, terminates=True, threshold=THRESHOLDS.get(name),
+        reset=reset, step=step, features=features, feature_dim=adapter.obs_dim + 1,
+        make_controller=lambda c: _observation_controller(
+            c, adapter.max_action, centre, scale, rbf_centres, rbf_width),
+        obs_centre=centre, obs_scale=scale)
+
+
+@functools.cache
+def make_task(name: str = "pendulum") -> Task:
+    """The `Task` of an environment name ('pendulum', 'gymnax:<id>', 'brax:<name>'; `SUPPORTED`).
+    Raises `TaskError` with one line naming what is supported for anything else."""
+    if name == "pendulum":
+        return _pendulum_task()
+    kind, _, env = name.partition(":")
+    if kind == "gymnax":
+        return _external_task(name, _gymnax_adapter(env))
+    if kind == "brax":
+        return _external_task(name, _brax_adapter(env))
+    raise TaskError(f"unknown environment {name!r}; {_supported_line()}")
