@@ -119,8 +119,21 @@ def _reproduce(args) -> int:
     from gpguided_jax import distributed, reproduce
 
     seeds = list(range(args.seed_start, args.seed_start + args.seeds))
+    overrides = {}
+    if args.env is not None:
+        overrides["env"] = args.env
+    if args.horizon is not None:
+        overrides["discount_horizon"] = args.horizon
+    from gpguided_jax import config
+
+    try:  # a config that makes no sense (an environment that is not supported) is one line
+        for m in args.methods:
+            config.preset(args.preset, method=m, dtype=args.dtype, **overrides)
+    except ValueError as e:
+        raise SystemExit(f"gpguided reproduce: error: {e}") from None
     out = reproduce.reproduce(
         preset=args.preset,
+        overrides=overrides,
         seeds=seeds,
         methods=args.methods,
         out_dir=args.out,
@@ -262,7 +275,16 @@ def _add_reproduce(sub) -> None:
         "from the checkpoints in --out.",
     )
     rep.add_argument("--preset", default="paper", choices=sorted(PRESETS),
-                     help="budgets and settings (config.PRESETS)")
+                     help="budgets and settings (config.PRESETS); the standard tasks' presets "
+                     "(pendulum-v1, mountaincar-continuous, inverted-pendulum, "
+                     "inverted-double-pendulum) set their environment")
+    rep.add_argument("--env", default=None, metavar="ENV",
+                     help="the environment, replacing the preset's: pendulum, gymnax:<id> or "
+                     "brax:<name> with one continuous action (e.g. gymnax:Pendulum-v1, "
+                     "brax:inverted_double_pendulum); the preset's budget applies")
+    rep.add_argument("--horizon", type=float, default=None, metavar="SECONDS",
+                     help="the discount as a horizon in seconds, gamma = exp(-dt / horizon) "
+                     "(replaces the preset's discount)")
     rep.add_argument("--seeds", type=positive_int, default=10, help="number of seeds")
     rep.add_argument("--seed-start", type=non_negative_int, default=REPORTED_SEED_START,
                      help="first seed (the reported results use seeds from 1000 on; the presets "

@@ -354,6 +354,30 @@ PRESETS: dict[str, dict] = {
     ),
 }
 
+# The standard tasks (gpguided_jax.tasks), each at its environment's own episode length, with the
+# same budget of environment steps for every method (and the baselines), evaluated by
+# `eval_episodes` deterministic episodes per update. The budgets were fixed before any run:
+# Pendulum-v1 100k steps (rl-baselines3-zoo trains PPO for 100k, SAC for 20k), the car 150k (SAC
+# 50k, TD3 300k), the brax pendulums 100k. The discount is a horizon in seconds (1 s: 20 steps of
+# Pendulum-v1, 25 of the brax pendulums).
+_STANDARD = dict(controller="rbf", optimizer="adam", learning_rate=0.01, gp_capacity=100,
+                 hyperfit_optimizer="lbfgs", hyperfit_steps=15, eval_episodes=5,
+                 discount_horizon=1.0)
+PRESETS.update({
+    "pendulum-v1": dict(_STANDARD, env="gymnax:Pendulum-v1", episode_length=200,
+                        episodes_per_update=5, num_updates=100, init_log_std=0.0, max_std=2.0),
+    "mountaincar-continuous": dict(_STANDARD, env="gymnax:MountainCarContinuous-v0",
+                                   episode_length=999, episodes_per_update=3, num_updates=50,
+                                   gp_stride=5, init_log_std=math.log(0.5), max_std=1.0,
+                                   discount_horizon=100.0),
+    "inverted-pendulum": dict(_STANDARD, env="brax:inverted_pendulum", episode_length=1000,
+                              episodes_per_update=3, num_updates=33, gp_stride=5,
+                              init_log_std=math.log(0.5), max_std=1.0),
+    "inverted-double-pendulum": dict(_STANDARD, env="brax:inverted_double_pendulum",
+                                     episode_length=1000, episodes_per_update=3, num_updates=33,
+                                     gp_stride=5, init_log_std=math.log(0.5), max_std=1.0),
+})
+
 
 # Per preset, per method: settings chosen by tuning one method at a time (applied after the
 # preset's own fields and before the caller's overrides).
@@ -369,7 +393,8 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
 
 
 def preset(name: str, **overrides) -> TrainConfig:
-    """The named preset ('paper', 'swingup', 'tiny') with field overrides, validated. If
+    """The named preset (`PRESETS`: 'paper', 'swingup', 'tiny' and the standard tasks) with field
+    overrides (`discount_horizon` among them), validated. If
     `overrides` name a method with tuned settings for this preset (`METHOD_PRESETS`), those apply
     before the other overrides."""
     if name not in PRESETS:
@@ -378,5 +403,7 @@ def preset(name: str, **overrides) -> TrainConfig:
     fields.update(METHOD_PRESETS.get(name, {}).get(overrides.get("method", TrainConfig.method), {}))
     pend = dict(fields.pop("pendulum_overrides", {}) or {})
     pend.update(overrides.pop("pendulum_overrides", {}) or {})
+    if "discount" in overrides:  # a discount given per step replaces the preset's horizon
+        fields.pop("discount_horizon", None)
     fields.update(overrides)
     return make_config(pendulum_overrides=pend, **fields)

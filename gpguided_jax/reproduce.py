@@ -423,8 +423,11 @@ def _reproduce(preset, seeds, methods, out_dir, dtype, chunk_size, num_devices, 
 def _summary(cfg: config_lib.TrainConfig, records: dict) -> dict:
     """The run's summary and comparison rows and their Markdown (`summaries`), for the task of
     `cfg` (the level of doing nothing, and the swing-up columns if its episodes can hold one)."""
-    rows = summaries.summarise(records, summaries.zero_torque_reward(cfg),
-                               success=summaries.holds_swing_up(cfg))
+    pendulum = cfg.env == "pendulum"
+    budgets = None if pendulum else {
+        m: summaries.task_budget(cfg.replace(method=m)) for m in records}
+    rows = summaries.summarise(records, summaries.zero_torque_reward(cfg) if pendulum else "no-level",
+                               success=summaries.holds_swing_up(cfg), budgets=budgets)
     comparisons = summaries.compare(records)
     return {"complete": True, "summary": rows, "comparisons": comparisons, "figures": [],
             "markdown": summaries.summary_markdown(rows)

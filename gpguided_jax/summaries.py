@@ -18,12 +18,13 @@ from __future__ import annotations
 import csv
 import functools
 import io
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpguided_jax import checkpoints, pendulum
+from gpguided_jax import checkpoints, pendulum, tasks
 from gpguided_jax import config as config_lib
 from gpguided_jax import stats as stats_lib
 from gpguided_jax import train as train_lib
@@ -80,17 +81,63 @@ def _zero_torque_episode_means(keys, params: pendulum.PendulumParams, num_steps:
 
 def holds_swing_up(cfg: config_lib.TrainConfig) -> bool:
     """Whether the task's episodes last long enough to hold a swing-up (`success_hold_time`):
-    then its summary has the success columns (`summarise(..., success=True)`)."""
+    then its summary has the success columns (`summarise(..., success=True)`). Only the
+    pendulum's: another task's success is its return threshold (`TaskBudget`)."""
+    if cfg.env != "pendulum":
+        return False
     return cfg.episode_length * float(np.asarray(cfg.pendulum.dt)) >= cfg.success_hold_time
 
 
-def failing_seeds(records: dict, zero_torque: float) -> dict[str, np.ndarray]:
+class TaskBudget(NamedTuple):
+    """What turns a run's updates into environment steps, and the task's return threshold.
+
+    Attributes:
+      steps_per_update: environment steps of one update's episodes (episodes x length).
+      fit_steps: environment steps of the GP methods' hyperparameter-fit episodes, spent before
+        the first update (0 for REINFORCE).
+      threshold: the episode return at which the task counts as solved (None: none).
+      return_record: the record of the policy's return: 'eval_return' (the deterministic policy,
+        when the config evaluates it) or 'mean_return' (the exploring episodes, when it does not).
+    """
+
+    steps_per_update: int
+    fit_steps: int
+    threshold: float | None
+    return_record: str = "eval_return"
+
+
+def task_budget(cfg: config_lib.TrainConfig) -> TaskBudget:
+    """`TaskBudget` of a method's config (its environment's threshold: `tasks.THRESHOLDS`)."""
+    fit = cfg.hyperfit_episodes * cfg.episode_length if cfg.uses_gp else 0
+    return TaskBudget(cfg.episodes_per_update * cfg.episode_length, fit,
+                      tasks.make_task(cfg.env).threshold,
+                      "eval_return" if cfg.eval_episodes > 0 else "mean_return")
+
+
+def steps_to_threshold(returns: np.ndarray, budget: TaskBudget) -> np.ndarray:
+    """Per seed: the environment steps spent (fit included) when the policy's return (record
+    `budget.return_record`) first reaches the threshold; NaN where it never does (or there is no
+    threshold). (seeds, updates) -> (seeds,).
+
+    Record u of eval_return evaluates the policy before update u's step, after u updates' episodes;
+    record u of mean_return is that of update u's own episodes, after u + 1 updates' episodes."""
+    returns = np.asarray(returns, float)
+    if budget.threshold is None:
+        return np.full(returns.shape[0], np.nan)
+    reached = returns >= budget.threshold
+    done = np.arange(returns.shape[-1]) + (budget.return_record == "mean_return")
+    steps = budget.fit_steps + budget.steps_per_update * done
+    return np.where(reached.any(axis=-1), steps[reached.argmax(axis=-1)], np.nan)
+
+
+def failing_seeds(records: dict, zero_torque: float | None) -> dict[str, np.ndarray]:
     """Per cause, a (seeds,) bool array of the seeds that failed (records of one method):
 
     * nonfinite_grad: any gradient estimate was not finite;
     * gp_guard: the GP health check rejected any episode's update;
     * std_at_bound: the learnable sigma was at min_std or max_std after any update;
-    * below_zero_torque: the final performance is below the zero-torque policy's;
+    * below_zero_torque: the final performance is below the zero-torque policy's (never, when
+      `zero_torque` is None: the level of doing nothing is only computed for the pendulum);
     * nan_record: any record is NaN;
     * any: any of these.
     """
@@ -98,7 +145,9 @@ def failing_seeds(records: dict, zero_torque: float) -> dict[str, np.ndarray]:
         "nonfinite_grad": np.any(records["nonfinite_grad"] > 0, axis=-1),
         "gp_guard": np.any(records["gp_guard"] > 0, axis=-1),
         "std_at_bound": np.any(records["std_at_bound"] > 0, axis=-1),
-        "below_zero_torque": final_performance(records["mean_reward"]) < zero_torque,
+        "below_zero_torque": (final_performance(records["mean_reward"]) < zero_torque
+                              if zero_torque is not None
+                              else np.zeros(np.shape(records["mean_reward"])[:-1], bool)),
         "nan_record": np.any(np.stack([np.isnan(np.asarray(records[k], float)).any(-1)
                                        for k in train_lib.RECORD_FIELDS]), axis=0),
     }
@@ -107,7 +156,8 @@ def failing_seeds(records: dict, zero_torque: float) -> dict[str, np.ndarray]:
 
 
 def summarise(records_by_method: dict[str, dict], zero_torque: float | None = None,
-              reps: int = stats_lib.DEFAULT_REPS, success: bool = False) -> list[dict]:
+              reps: int = stats_lib.DEFAULT_REPS, success: bool = False,
+              budgets: dict[str, TaskBudget] | None = None) -> list[dict]:
     """One row per method: initial and final performance (mean reward per step over the first and
     last 10% of updates), the final's mean with its 95% t-interval and its IQM with the 95%
     stratified-bootstrap interval over seeds, the mean updates to 90%, and the failing seeds.
@@ -116,11 +166,15 @@ def summarise(records_by_method: dict[str, dict], zero_torque: float | None = No
       records_by_method: method -> dict field -> (seeds, updates); at least mean_reward (the
         failure counts need the other `UpdateRecord` fields too).
       zero_torque: the zero-torque policy's reward per step (for `below_zero_torque`); None skips
-        the failure counts.
+        the failure counts, "no-level" counts every cause but that one.
       success: add the swing-up columns (records success_rate and eval_success_rate): the final
         success rate (last 10% of updates) of the exploring episodes and of the deterministic
         controller c(s), mean over seeds, and the seeds whose final deterministic success rate is
         at least 0.9.
+      budgets: method -> `TaskBudget`: add the task's columns (record eval_return): the final
+        undiscounted return of the deterministic policy (last 10% of updates per seed), its IQM
+        with the stratified-bootstrap interval over seeds, the environment steps per seed to the
+        threshold (median over the seeds that reach it) and how many seeds reach it.
     """
     rows = []
     for method, rec in records_by_method.items():
@@ -148,11 +202,24 @@ def summarise(records_by_method: dict[str, dict], zero_torque: float | None = No
             row["final_success_rate"] = float(explore.mean())
             row["final_eval_success_rate"] = float(greedy.mean())
             row["seeds_eval_success_90"] = int(np.sum(greedy >= 0.9))
+        if budgets is not None and method in budgets:
+            returns = np.asarray(rec[budgets[method].return_record], float)
+            ret = final_performance(returns)
+            rlo, rhi = stats_lib.bootstrap_ci(ret, reps=reps) if n > 1 else (np.nan, np.nan)
+            reach = steps_to_threshold(returns, budgets[method])
+            row.update(return_of=budgets[method].return_record, final_return_iqm=stats_lib.iqm(ret), return_ci95_low=rlo,
+                       return_ci95_high=rhi, final_return_mean=float(ret.mean()),
+                       steps_to_threshold_median=float(np.median(reach[np.isfinite(reach)]))
+                       if np.isfinite(reach).any() else np.nan,
+                       seeds_reaching_threshold=int(np.isfinite(reach).sum()),
+                       env_steps=budgets[method].fit_steps
+                       + budgets[method].steps_per_update * curves.shape[-1])
         if zero_torque is not None:
-            fails = failing_seeds(rec, zero_torque)
+            level = None if zero_torque == "no-level" else zero_torque
+            fails = failing_seeds(rec, level)
             row["failing_seeds"] = int(fails["any"].sum())
             row.update({f"fail_{c}": int(fails[c].sum()) for c in FAILURE_CAUSES})
-            row["zero_torque_reward"] = zero_torque
+            row["zero_torque_reward"] = level if level is not None else np.nan
         rows.append(row)
     return rows
 
@@ -188,6 +255,11 @@ def summary_markdown(rows: list[dict]) -> str:
     if succ:
         head += " success (exploring) | success (c(s)) | seeds >= 90% |"
         rule += "---|---|---|"
+    task = bool(rows) and "final_return_iqm" in rows[0]
+    if task:
+        of = "c(s)" if rows[0]["return_of"] == "eval_return" else "exploring episodes"
+        head += f" return of {of} (IQM) | 95% CI | steps to threshold (median) | seeds reaching it |"
+        rule += "---|---|---|---|"
     lines = [head, rule]
     for r in rows:
         fails = r.get("failing_seeds", "")
@@ -201,6 +273,11 @@ def summary_markdown(rows: list[dict]) -> str:
         if succ:
             line += (f" {r['final_success_rate']:.2f} | {r['final_eval_success_rate']:.2f} | "
                      f"{r['seeds_eval_success_90']}/{r['seeds']} |")
+        if task:
+            reach = r["steps_to_threshold_median"]
+            line += (f" {r['final_return_iqm']:.1f} | [{r['return_ci95_low']:.1f}, "
+                     f"{r['return_ci95_high']:.1f}] | {'-' if np.isnan(reach) else f'{reach:,.0f}'} | "
+                     f"{r['seeds_reaching_threshold']}/{r['seeds']} |")
         lines.append(line)
     return "\n".join(lines)
 
