@@ -207,8 +207,9 @@ def summarise(records_by_method: dict[str, dict], zero_torque: float | None = No
             ret = final_performance(returns)
             rlo, rhi = stats_lib.bootstrap_ci(ret, reps=reps) if n > 1 else (np.nan, np.nan)
             reach = steps_to_threshold(returns, budgets[method])
-            row.update(return_of=budgets[method].return_record, final_return_iqm=stats_lib.iqm(ret), return_ci95_low=rlo,
-                       return_ci95_high=rhi, final_return_mean=float(ret.mean()),
+            row.update(return_of=budgets[method].return_record,
+                       final_return_iqm=stats_lib.iqm(ret), return_ci95_low=rlo, return_ci95_high=rhi,
+                       final_return_mean=float(ret.mean()),
                        steps_to_threshold_median=float(np.median(reach[np.isfinite(reach)]))
                        if np.isfinite(reach).any() else np.nan,
                        seeds_reaching_threshold=int(np.isfinite(reach).sum()),
