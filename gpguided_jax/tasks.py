@@ -37,7 +37,10 @@ to its nearest neighbour. The GP's input is (z, a). u_max is the environment's a
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import io
+import warnings
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -189,11 +192,15 @@ def _gymnax_adapter(env_id: str) -> _Adapter:
 
 
 def _brax_adapter(name: str) -> _Adapter:
-    from brax import envs
+    # brax's import says on stdout that mujoco's optional GPU backend (warp) is missing, and its
+    # environments warn that brax is in maintenance: neither concerns these CPU runs
+    with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Brax System, piplines")
+        from brax import envs
 
-    if name not in envs._envs:
-        raise TaskError(f"unknown environment 'brax:{name}'; {_supported_line()}")
-    env = envs.get_environment(name)
+        if name not in envs._envs:
+            raise TaskError(f"unknown environment 'brax:{name}'; {_supported_line()}")
+        env = envs.get_environment(name)
     if env.action_size != 1:
         raise TaskError(f"brax:{name} has {env.action_size} continuous actions, not one; "
                         f"{_supported_line()}")
@@ -312,10 +319,26 @@ def _external_task(name: str, adapter: _Adapter) -> Task:
         obs_centre=centre, obs_scale=scale)
 
 
+_REGISTERED: dict[str, Task] = {}
+
+
+def register(task: Task) -> Task:
+    """Makes a `Task` written by hand trainable by name (`TrainConfig.env = task.name`): any JAX
+    environment with one continuous action, given as the module notes describe."""
+    if task.name in SUPPORTED or task.name.partition(":")[0] in ("gymnax", "brax"):
+        raise TaskError(f"the name {task.name!r} is taken by a built-in environment")
+    _REGISTERED[task.name] = task
+    make_task.cache_clear()
+    return task
+
+
 @functools.cache
 def make_task(name: str = "pendulum") -> Task:
-    """The `Task` of an environment name ('pendulum', 'gymnax:<id>', 'brax:<name>'; `SUPPORTED`).
-    Raises `TaskError` with one line naming what is supported for anything else."""
+    """The `Task` of an environment name ('pendulum', 'gymnax:<id>', 'brax:<name>'; `SUPPORTED`),
+    or one `register`ed. Raises `TaskError` with one line naming what is supported for anything
+    else."""
+    if name in _REGISTERED:
+        return _REGISTERED[name]
     if name == "pendulum":
         return _pendulum_task()
     kind, _, env = name.partition(":")

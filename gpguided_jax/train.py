@@ -222,7 +222,7 @@ def run_episode(prog: Program, key, act, cfg: TrainConfig, num_steps: int):
         keep = lambda new, old: jnp.where(alive, new, old)  # noqa: E731
         carry = (jax.tree_util.tree_map(keep, new_state, env_state), keep(new_obs, obs),
                  alive & ~done)
-        return carry, (obs, new_obs, a, jnp.where(alive, r, jnp.zeros_like(r)), (out, alive))
+        return carry, (obs, carry[1], a, jnp.where(alive, r, jnp.zeros_like(r)), (out, alive))
 
     keys = jax.random.split(key_steps, num_steps)
     _, (o, o_next, a, r, out) = jax.lax.scan(body, (env_state, obs, jnp.ones((), bool)), keys)
