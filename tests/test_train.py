@@ -361,7 +361,7 @@ def test_gp_stride_takes_every_kth_point_into_the_gp():
             ctx = T.policy_context(cfg, gp, state.kernel)
             ep = T.rollout(prog, key_e, state.theta, ctx, prog.policy, cfg)
             ret = T.estimators.discounted_returns(ep.rewards, cfg.discount)
-            feats = T._features(ep.states, ep.actions)
+            feats = T._features(prog, ep.states, ep.actions)
             gp, _, _ = T.take_in_episode(gp, state.kernel, feats[::3], ret[::3], state.update_index,
                                          cfg)
         return gp
