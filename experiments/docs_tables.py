@@ -315,6 +315,56 @@ def swingup_sac_table() -> str:
     return "\n".join(lines)
 
 
+def _steps(v) -> str:
+    return "–" if v is None else f"{v / 1000:.1f}k"
+
+
+def standard_table(task: str) -> str:
+    """`experiments/standard_tasks.py report`: the held-out comparison on one standard task."""
+    path = os.path.join("standard", task, "heldout_table.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        d = json.load(f)
+    lines = ["| method | final return, IQM | 95% CI (stratified bootstrap) | final return, mean | "
+             "steps to threshold, median | seeds reaching it | wall time |",
+             "|---|---|---|---|---|---|---|"]
+    for r in d["rows"]:
+        lines.append(f"| {r['method']} | {r['final_return_iqm']:.1f} | [{r['ci95_low']:.1f}, "
+                     f"{r['ci95_high']:.1f}] | {r['final_return_mean']:.1f} | "
+                     f"{_steps(r['steps_to_threshold_median'])} | {r['seeds_reaching']}/{r['seeds']} | "
+                     f"{r['wall_s']:.0f} s |")
+    seeds = d["seeds"]
+    lines.append("")
+    lines.append(f"Held-out seeds {seeds[0]}–{seeds[-1]}; {d['rows'][0]['env_steps']:,} environment "
+                 f"steps for every method (the GP methods' include their hyperparameter fit's); "
+                 f"threshold {d['threshold']:g}. Final return: the deterministic policy, last 10% of "
+                 "evaluations per seed. Wall time: each method's whole run, compilation included, "
+                 "one after another on this page's machine. "
+                 + (f"Published: {d['reference']}. " if d.get("reference") else "")
+                 + _source(path))
+    return "\n".join(lines)
+
+
+def standard_tuning_table(task: str) -> str:
+    """`experiments/standard_tasks.py tune`: every configuration tried on the tuning seeds."""
+    path = os.path.join("standard", task, "tuning.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        d = json.load(f)
+    fmt = lambda v: f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
+    lines = ["| method | settings | final return (tuning seeds) | chosen |", "|---|---|---|---|"]
+    for name, r in d["methods"].items():
+        for t in r["tried"]:
+            settings = ", ".join(f"{k}={fmt(v)}" for k, v in t["settings"].items())
+            lines.append(f"| {name} | {settings} | {t['score']:.1f} | "
+                         f"{'yes' if t['settings'] == r['chosen'] else ''} |")
+    lines.append("")
+    lines.append(f"Tuning seeds {d['seeds']}, {d['env_steps']:,} environment steps per run. "
+                 + _source(path))
+    return "\n".join(lines)
+
+
+STANDARD_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
+                  "inverted-double-pendulum")
+
 TABLES = {
     "fig5": fig5_table,
     "improvement": improvement_table,
@@ -330,6 +380,9 @@ TABLES = {
     "swingup": swingup_table,
     "swingup_warm": swingup_warm_table,
     "swingup_sac": swingup_sac_table,
+    **{f"standard_{t.replace('-', '_')}": (lambda t=t: standard_table(t)) for t in STANDARD_TASKS},
+    **{f"standard_tuning_{t.replace('-', '_')}": (lambda t=t: standard_tuning_table(t))
+       for t in STANDARD_TASKS},
 }
 BLOCK = re.compile(r"(<!-- generated: (\w+) -->\n)(.*?)(<!-- end: \2 -->)", re.S)
 

@@ -210,6 +210,74 @@ def _run_brax(train_fn, pendulum_params, num_timesteps, episode_length, seed, *,
                      np.asarray(success))
 
 
+class TaskResult(NamedTuple):
+    """What `train_on_task` returns.
+
+    Attributes:
+      env_steps: (E,) environment steps at each evaluation (0 for the initial policy).
+      episode_return: (E,) undiscounted return of an evaluation episode (mean over episodes).
+      wall_time: seconds for the whole `train` call, compilation and evaluations included.
+    """
+
+    env_steps: np.ndarray
+    episode_return: np.ndarray
+    wall_time: float
+
+
+def train_on_task(algorithm: str, env: str, num_timesteps: int, episode_length: int, seed: int, *,
+                  num_evals: int = 11, hidden_layers: tuple = (64, 64), **kwargs) -> TaskResult:
+    """brax's PPO or SAC on a task of `gpguided_jax.tasks` ('gymnax:<id>' or 'brax:<name>'),
+    through `brax_env.task_env`; evaluated by brax's evaluator on `num_eval_envs` fresh episodes
+    with the deterministic policy (the mean action), as the GP methods' `eval_return` evaluates
+    c(s).
+
+    Args:
+      algorithm: 'ppo' or 'sac'.
+      env: the task's name.
+      num_timesteps: environment-step budget (brax rounds it up to whole iterations).
+      episode_length: steps per episode (brax's `EpisodeWrapper` truncates there).
+      seed: the trainer's seed.
+      num_evals: evaluations, the initial one included (>= 2).
+      hidden_layers: hidden sizes of every MLP.
+      **kwargs: overrides of `PPO_DEFAULTS` / `SAC_DEFAULTS`, or further `train` arguments.
+    """
+    if algorithm == "ppo":
+        from brax.training.agents.ppo import networks as nets
+        from brax.training.agents.ppo import train as trainer
+
+        kwargs = {**PPO_DEFAULTS, "deterministic_eval": True, **kwargs}
+        kwargs.setdefault("reward_scaling", 1.0 - kwargs["discounting"])
+        factory = functools.partial(nets.make_ppo_networks,
+                                    policy_hidden_layer_sizes=tuple(hidden_layers),
+                                    value_hidden_layer_sizes=tuple(hidden_layers))
+    elif algorithm == "sac":
+        from brax.training.agents.sac import networks as nets
+        from brax.training.agents.sac import train as trainer
+
+        kwargs = {**SAC_DEFAULTS, "deterministic_eval": True, **kwargs}
+        factory = functools.partial(nets.make_sac_networks, hidden_layer_sizes=tuple(hidden_layers))
+    else:
+        raise ValueError(f"unknown baseline {algorithm!r}; choose 'ppo' or 'sac'")
+    if num_evals < 2:
+        raise ValueError(f"num_evals must be >= 2, got {num_evals}")
+    steps, returns = [], []
+
+    def progress(step, metrics):
+        steps.append(int(step))
+        returns.append(float(metrics["eval/episode_reward"]))
+
+    with jax.enable_x64(False):
+        t0 = time.perf_counter()
+        _, params, _ = trainer.train(environment=brax_env.task_env(env),
+                                     num_timesteps=int(num_timesteps),
+                                     episode_length=int(episode_length), num_evals=int(num_evals),
+                                     seed=int(seed), progress_fn=progress,
+                                     network_factory=factory, **kwargs)
+        jax.block_until_ready(params)
+        wall = time.perf_counter() - t0
+    return TaskResult(np.asarray(steps), np.asarray(returns), wall)
+
+
 # The success criterion and its rates live in `swingup`; kept here under their old names.
 swingup_success = swingup.success
 success_flags = swingup.success_flags
@@ -280,4 +348,6 @@ __all__ = [
     "success_flags",
     "swingup_success",
     "train_ppo",
+    "TaskResult",
+    "train_on_task",
 ]

@@ -1,4 +1,5 @@
-"""The pendulum behind brax's `Env` interface, so brax's own trainers (PPO) run on it.
+"""The pendulum, and gymnax's environments, behind brax's `Env` interface, so brax's own trainers
+(PPO, SAC) run on them (`PendulumEnv`, `GymnaxEnv`, `task_env`).
 
 Observation (sin phi, cos phi, omega); action in [-1, 1] scaled to the torque limit. The physical
 state [phi, omega], followed by the number of consecutive steps spent within the success tolerance
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from brax.envs.base import Env, State
 
 from gpguided_jax import pendulum
@@ -99,3 +101,67 @@ def register() -> None:
     from brax import envs
 
     envs.register_environment(ENV_NAME, PendulumEnv)
+
+
+class GymnaxEnv(Env):
+    """A gymnax environment with one continuous action behind brax's `Env`, so that brax's
+    trainers run on the tasks of `gpguided_jax.tasks` (`task_env`).
+
+    The action is in [-1, 1] (brax's policies squash to it), scaled to the environment's bound.
+    gymnax's own state is `State.pipeline_state` (brax's `AutoResetWrapper` restores it at an
+    episode's end), its step key `State.info["rng"]`. gymnax's time limit is lifted: brax's
+    `EpisodeWrapper` truncates the episodes instead, so that `done` is a true termination (the car
+    at the flag) and a trainer bootstraps its value at the time limit. Observations and rewards are
+    float32.
+    """
+
+    def __init__(self, env_id: str, backend: str = "jax"):
+        import gymnax
+
+        self._env, params = gymnax.make(env_id)
+        space = self._env.action_space(params)
+        self._max_action = float(max(abs(float(space.low)), abs(float(space.high))))
+        self._params = params.replace(max_steps_in_episode=2**30)
+        self._obs_size = int(np.prod(self._env.observation_space(params).shape))
+        self._backend = backend
+
+    def reset(self, rng: jax.Array) -> State:
+        key_reset, key_next = jax.random.split(rng)
+        obs, s = self._env.reset_env(key_reset, self._params)
+        zero = jnp.zeros((), jnp.float32)
+        return State(pipeline_state=s, obs=jnp.asarray(obs, jnp.float32), reward=zero, done=zero,
+                     metrics={}, info={"rng": key_next})
+
+    def step(self, state: State, action: jax.Array) -> State:
+        key, key_next = jax.random.split(state.info["rng"])
+        a = jnp.reshape(jnp.clip(action, -1.0, 1.0), (1,)) * self._max_action
+        obs, s, reward, done, _ = self._env.step_env(key, state.pipeline_state, a, self._params)
+        state.info.update(rng=key_next)
+        return state.replace(pipeline_state=s, obs=jnp.asarray(obs, jnp.float32),
+                             reward=jnp.asarray(reward, jnp.float32),
+                             done=jnp.asarray(done, jnp.float32))
+
+    @property
+    def observation_size(self) -> int:
+        return self._obs_size
+
+    @property
+    def action_size(self) -> int:
+        return 1
+
+    @property
+    def backend(self) -> str:
+        return self._backend
+
+
+def task_env(name: str) -> Env:
+    """The brax `Env` of a task name of `gpguided_jax.tasks` other than the paper's pendulum:
+    brax's own environment for 'brax:<name>', `GymnaxEnv` for 'gymnax:<id>'."""
+    kind, _, env = name.partition(":")
+    if kind == "gymnax":
+        return GymnaxEnv(env)
+    if kind == "brax":
+        from brax import envs
+
+        return envs.get_environment(env)
+    raise ValueError(f"no brax Env for the task {name!r} (pendulum: PendulumEnv)")

@@ -502,9 +502,15 @@ def initial_theta(prog: Program, cfg: TrainConfig) -> policies.PolicyParams:
 
 
 def collect(prog: Program, key, cfg: TrainConfig):
-    """(x, Ret) pairs from the initial fixed-noise policy: (n_episodes * H, D), (n * H,), and
-    (n * H,) bool, which of them come before their episode's end (None for a task that never
-    ends early)."""
+    """(x, Ret) pairs from the initial fixed-noise policy: (n_episodes * H, D), (n * H,). On a
+    task that ends early the pairs after an episode's end are among them, with return 0
+    (`collect_valid` says which)."""
+    return collect_valid(prog, key, cfg)[:2]
+
+
+def collect_valid(prog: Program, key, cfg: TrainConfig):
+    """`collect`'s pairs and (n * H,) bool, which of them come before their episode's end (None for
+    a task that never ends early)."""
     theta = initial_theta(prog, cfg)
     d = prog.task.feature_dim
     gp = sparse_gp.init(1, d, prog.dtype)
@@ -523,7 +529,7 @@ def fit_subset(prog: Program, key, cfg: TrainConfig):
     subset of `hyperfit_subset` pairs the likelihood is taken on (None: all pairs, when there are
     no more) and which pairs come before their episode's end. Returns (xs, ys, idx, valid)."""
     key_data, key_subset = jax.random.split(key)
-    xs, ys, valid = collect(prog, key_data, cfg)
+    xs, ys, valid = collect_valid(prog, key_data, cfg)
     n = min(prog.config.hyperfit_subset, xs.shape[0])
     if valid is not None:
         # the subset is drawn from the pairs before their episode's end; with fewer of them than
