@@ -12,13 +12,13 @@ docs/results/standard/<task>):
             configuration so far (`grids`, `baseline_grids`; written before any run). The discount
             is searched as a horizon in seconds (`tasks.discount_for_horizon`). The score is the
             final undiscounted return of the deterministic policy (last 10% of evaluations, mean
-            over seeds). Writes tuning.json.
+            over seeds). Writes tuning/<name>.json per method or baseline (--only: which).
 ``heldout`` Held-out seeds (1000-1009): each method with `gpguided reproduce`'s driver and its tuned
-            settings, each baseline per seed; wall time per method. Writes methods/ (the run),
-            heldout.npz (return curves against environment steps) and heldout.json.
-``report``  The figure (return of the deterministic policy against environment steps, mean and 95%
-            t-band over seeds, the threshold dashed) and heldout_table.json, from which
-            `docs_tables.py` renders the table.
+            settings, each baseline per seed; wall time per method. Writes methods/<name>/ (the
+            run), heldout/<name>.npz (return curves against environment steps) and .json.
+``report``  tuning.json (the tuning records gathered), the figure (return of the deterministic
+            policy against environment steps, mean and 95% t-band over seeds, the threshold
+            dashed) and heldout_table.json, from which `docs_tables.py` renders the tables.
 
 Usage:
   python experiments/standard_tasks.py tune --task pendulum-v1
@@ -42,7 +42,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import gpguided_jax  # noqa: E402
-from gpguided_jax import baselines, checkpoints, reproduce, summaries, sweep, tasks  # noqa: E402
+from gpguided_jax import baselines, checkpoints, reproduce, runtime, summaries, sweep, tasks  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
 from gpguided_jax import stats as stats_lib  # noqa: E402
 
@@ -51,7 +51,7 @@ BASELINES = ("ppo", "sac")
 CONFIGS_PER_METHOD = 8
 TUNING_SEEDS = (100, 101)
 HELDOUT_SEEDS = tuple(range(1000, 1010))
-NUM_EVALS = 21
+NUM_EVALS = 26  # 25 intervals: brax PPO (2,000 steps an iteration) then stops at exactly 100k steps
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 # Published reference numbers (rl-baselines3-zoo, benchmark.md: one run each, the mean and
@@ -191,19 +191,32 @@ def tune_baseline(task: str, name: str, seeds) -> dict:
 
 
 def tune(task: str, out: str, only: list[str]) -> None:
+    """Tunes each of `only`, writing tuning/<name>.json (one file each, so that methods and
+    baselines can be tuned by separate processes); `report` gathers them into tuning.json."""
     # tuning starts from the preset's own settings, whatever an earlier tuning chose
     config_lib.METHOD_PRESETS.pop(task, None)
-    path = os.path.join(out, "tuning.json")
-    report = {"task": task, "seeds": list(TUNING_SEEDS), "env_steps": budget(task), "methods": {},
-              "grids": {**grids(task), **baseline_grids(task)}}
-    if os.path.exists(path):
-        with open(path) as f:
-            report["methods"] = json.load(f)["methods"]
+    os.makedirs(os.path.join(out, "tuning"), exist_ok=True)
     for name in only:
         log(f"[tune {task}] {name}")
-        report["methods"][name] = (tune_baseline(task, name, TUNING_SEEDS) if name in BASELINES
-                                   else tune_method(task, name, TUNING_SEEDS))
-        checkpoints.atomic_write_text(path, json.dumps(report, indent=2))
+        result = (tune_baseline(task, name, TUNING_SEEDS) if name in BASELINES
+                  else tune_method(task, name, TUNING_SEEDS))
+        grid = (baseline_grids(task) if name in BASELINES else grids(task))[name]
+        checkpoints.atomic_write_text(os.path.join(out, "tuning", f"{name}.json"),
+                                      json.dumps({"grid": grid, **result}, indent=2))
+
+
+def gather_tuning(task: str, out: str) -> dict:
+    """tuning.json: every tuned method's and baseline's record, in a fixed order."""
+    methods = {}
+    for name in (*METHODS, *BASELINES):
+        path = os.path.join(out, "tuning", f"{name}.json")
+        if os.path.exists(path):
+            with open(path) as f:
+                methods[name] = json.load(f)
+    report = {"task": task, "seeds": list(TUNING_SEEDS), "env_steps": budget(task),
+              "methods": methods}
+    checkpoints.atomic_write_text(os.path.join(out, "tuning.json"), json.dumps(report, indent=2))
+    return report
 
 
 # --------------------------------------------------------------------------------------- heldout
@@ -214,48 +227,58 @@ def method_overrides(task: str, settings: dict) -> dict:
             for k, v in settings.items()}
 
 
-def heldout(task: str, out: str, seeds) -> None:
-    with open(os.path.join(out, "tuning.json")) as f:
-        tuning = json.load(f)["methods"]
-    curves, meta = {}, {"seeds": list(seeds), "wall_s": {}, "settings": {}}
-    for m in METHODS:  # one run per method: its wall time includes its own fit and compilation
-        settings = tuning.get(m, {}).get("chosen", {})
-        run_dir = os.path.join(out, "methods", m)
-        t0 = time.perf_counter()
-        # the tuned settings are the preset's (config.METHOD_PRESETS, checked against tuning.json
-        # by the tests); passed again here, so that this stage runs as soon as tuning.json exists
-        res = reproduce.reproduce(task, seeds, [m], run_dir, chunk_size=25,
-                                  overrides=method_overrides(task, settings))
-        meta["wall_s"][m] = time.perf_counter() - t0
-        meta["settings"][m] = settings
-        assert res["complete"]
-        with np.load(os.path.join(run_dir, "results.npz")) as f:
-            curves[f"{m}_return"] = f["eval_return"][0]
-        curves[f"{m}_steps"] = method_env_steps(base_config(task, m))
-    for name in BASELINES:
-        settings = tuning.get(name, {}).get("chosen", {})
-        rs = []
-        for s in seeds:
-            r = run_baseline(task, name, s, settings)
-            log(f"[{task} {name}] seed {s}: {r.env_steps[-1]} steps, {r.wall_time:.0f}s, "
-                f"return {r.episode_return[-1]:.1f}")
-            rs.append(r)
-        curves[f"{name}_steps"] = rs[0].env_steps
-        curves[f"{name}_return"] = np.stack([r.episode_return for r in rs])
-        meta["wall_s"][name] = float(sum(r.wall_time for r in rs))
-        meta["settings"][name] = settings
-    checkpoints.atomic_savez(os.path.join(out, "heldout.npz"), **curves)
-    checkpoints.atomic_write_text(os.path.join(out, "heldout.json"), json.dumps(meta, indent=2))
+def heldout(task: str, out: str, seeds, only: list[str]) -> None:
+    """Each of `only` on the held-out seeds with its tuned settings (tuning/<name>.json; the
+    preset's own without one), into heldout/<name>.npz and .json."""
+    os.makedirs(os.path.join(out, "heldout"), exist_ok=True)
+    for name in only:
+        path = os.path.join(out, "tuning", f"{name}.json")
+        settings = {}
+        if os.path.exists(path):
+            with open(path) as f:
+                settings = json.load(f)["chosen"]
+        meta = {"seeds": list(seeds), "settings": settings}
+        if name in METHODS:  # its own run: its wall time includes its fit and compilation
+            run_dir = os.path.join(out, "methods", name)
+            t0 = time.perf_counter()
+            # the tuned settings are the preset's (config.METHOD_PRESETS, checked against the
+            # tuning record by the tests); passed here too, so that this stage runs right after
+            # the tuning
+            res = reproduce.reproduce(task, seeds, [name], run_dir, chunk_size=25,
+                                      overrides=method_overrides(task, settings))
+            meta["wall_s"] = time.perf_counter() - t0
+            assert res["complete"]
+            with np.load(os.path.join(run_dir, "results.npz")) as f:
+                curves = {"return": f["eval_return"][0]}
+            curves["steps"] = method_env_steps(base_config(task, name))
+        else:
+            rs = []
+            for s in seeds:
+                r = run_baseline(task, name, s, settings)
+                log(f"[{task} {name}] seed {s}: {r.env_steps[-1]} steps, {r.wall_time:.0f}s, "
+                    f"return {r.episode_return[-1]:.1f}")
+                rs.append(r)
+            curves = {"steps": rs[0].env_steps, "return": np.stack([r.episode_return for r in rs])}
+            meta["wall_s"] = float(sum(r.wall_time for r in rs))
+        checkpoints.atomic_savez(os.path.join(out, "heldout", f"{name}.npz"), **curves)
+        checkpoints.atomic_write_text(os.path.join(out, "heldout", f"{name}.json"),
+                                      json.dumps(meta, indent=2))
 
 
 # ---------------------------------------------------------------------------------------- report
 
 
 def report(task: str, out: str) -> None:
-    with np.load(os.path.join(out, "heldout.npz")) as f:
-        curves = {k: f[k] for k in f.files}
-    with open(os.path.join(out, "heldout.json")) as f:
-        meta = json.load(f)
+    gather_tuning(task, out)
+    curves, meta = {}, {"wall_s": {}}
+    for n in (*METHODS, *BASELINES):
+        path = os.path.join(out, "heldout", f"{n}.npz")
+        if os.path.exists(path):
+            with np.load(path) as f:
+                curves[f"{n}_steps"], curves[f"{n}_return"] = f["steps"], f["return"]
+            with open(path[:-4] + ".json") as f:
+                m = json.load(f)
+            meta["wall_s"][n], meta["seeds"] = m["wall_s"], m["seeds"]
     threshold = tasks.THRESHOLDS[config_lib.PRESETS[task]["env"]]
     names = [n for n in (*METHODS, *BASELINES) if f"{n}_return" in curves]
     rows = []
@@ -300,15 +323,17 @@ def main(argv=None) -> int:
                                                      if "env" in config_lib.PRESETS[t]])
     p.add_argument("--out", default=None, help="default docs/results/standard/<task>")
     p.add_argument("--only", nargs="+", default=[*METHODS, *BASELINES],
-                   help="tune: these methods and baselines")
+                   help="tune, heldout: these methods and baselines")
     args = p.parse_args(argv)
+    runtime.single_threaded_lapack()
+    runtime.set_compile_cache(runtime.DEFAULT_COMPILE_CACHE)
     gpguided_jax.enable_x64()
     out = args.out or os.path.join(ROOT, "docs", "results", "standard", args.task)
     os.makedirs(out, exist_ok=True)
     if args.stage == "tune":
         tune(args.task, out, args.only)
     elif args.stage == "heldout":
-        heldout(args.task, out, HELDOUT_SEEDS)
+        heldout(args.task, out, HELDOUT_SEEDS, args.only)
     else:
         report(args.task, out)
     return 0

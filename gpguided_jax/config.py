@@ -389,6 +389,22 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
         "guided_variance": {"learning_rate": 0.3, "age_penalty": 10.0},
         "guided_direction": {"learning_rate": 0.1},
     },
+    # experiments/standard_tasks.py tune (seeds 100-101; docs/standard_tasks.md); the horizon in
+    # seconds
+    "pendulum-v1": {
+        "reinforce": {"learning_rate": 0.03, "discount_horizon": 0.5},
+        "gp_pg": {"learning_rate": 0.003, "init_log_std": math.log(2.0)},
+        "guided_variance": {"learning_rate": 0.01},
+        "guided_direction": {"learning_rate": 0.03, "discount_horizon": 0.5, "candidate_scale": 1.0},
+    },
+    "mountaincar-continuous": {  # the horizon in steps (the car's step counts as 1 s)
+        "reinforce": {"learning_rate": 0.01, "discount_horizon": 30.0},
+        "gp_pg": {"learning_rate": 0.03},
+        "guided_variance": {"learning_rate": 0.003, "discount_horizon": 30.0,
+                            "guided_variance_scale": 0.25},
+        "guided_direction": {"learning_rate": 0.01, "candidate_scale": 2.0,
+                             "inverse_temperature": 100.0},
+    },
 }
 
 

@@ -2,13 +2,15 @@
 masking of early ends, the discount as a horizon, steps to a threshold, the refusals, and tiny runs
 on a gymnax and a brax environment from the command line."""
 
+import json
 import math
+import os
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import run_script
+from conftest import ROOT, run_script
 
 from gpguided_jax import cli, config, estimators, summaries, tasks, train
 
@@ -202,3 +204,19 @@ def test_a_tiny_run_on_a_standard_environment_from_the_command_line(env, methods
         assert float(r["final_return_mean"]) == pytest.approx(float(ret[i, :, -1].mean()), rel=1e-12)
         fit = cfg.hyperfit_episodes * length if r["method"] == "gp_pg" else 0
         assert int(r["env_steps"]) == fit + cfg.num_updates * cfg.episodes_per_update * length
+
+
+@pytest.mark.parametrize("task,dt", [("pendulum-v1", 0.05), ("mountaincar-continuous", 1.0)])
+def test_the_standard_presets_hold_the_tuned_settings(task, dt):
+    """`gpguided reproduce --preset <task>` runs each method as the tuning chose
+    (docs/results/standard/<task>/tuning.json; its horizons are the presets' discount_horizon)."""
+    with open(os.path.join(ROOT, "docs", "results", "standard", task, "tuning.json")) as f:
+        tuning = json.load(f)
+    for method in config.METHODS:
+        chosen = {("discount_horizon" if k == "horizon" else k): v
+                  for k, v in tuning["methods"][method]["chosen"].items()}
+        assert config.METHOD_PRESETS[task][method] == pytest.approx(chosen), method
+        cfg = config.preset(task, method=method)
+        assert float(cfg.learning_rate) == pytest.approx(chosen["learning_rate"])
+        horizon = chosen.get("discount_horizon", config.PRESETS[task]["discount_horizon"])
+        assert float(cfg.discount) == pytest.approx(math.exp(-dt / horizon))
