@@ -14,7 +14,7 @@ SEEDS ?= 100
 SEED_START ?= 1000
 CONSISTENCY_SEEDS := $(shell seq $(SEED_START) $$(($(SEED_START) + 9)))
 
-.PHONY: run results figures swingup demo test lint bench docs clean-venv
+.PHONY: run results figures swingup standard demo test lint bench docs clean-venv
 
 $(STAMP): pyproject.toml requirements.lock
 	python3 -m venv $(VENV)
@@ -64,6 +64,17 @@ swingup: $(STAMP)
 	$(PY) experiments/swingup_study.py gpfig
 	$(PY) experiments/swingup_diagnostics.py warm sac
 	$(PY) experiments/swingup_diagnostics.py warm --warm-lr 0.003
+	$(PY) experiments/docs_tables.py --write
+
+# The standard tasks (docs/standard_tasks.md): tuning on seeds 100-101, then seeds 1000-1009,
+# for each task with a comparison on the page.
+STANDARD_TASKS ?= pendulum-v1 mountaincar-continuous
+standard: $(STAMP)
+	for t in $(STANDARD_TASKS); do \
+	  $(PY) experiments/standard_tasks.py tune --task $$t && \
+	  $(PY) experiments/standard_tasks.py heldout --task $$t && \
+	  $(PY) experiments/standard_tasks.py report --task $$t || exit 1; \
+	done
 	$(PY) experiments/docs_tables.py --write
 
 demo: $(STAMP)
