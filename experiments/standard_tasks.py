@@ -29,6 +29,7 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import glob
 import json
 import math
 import os
@@ -227,10 +228,16 @@ def method_overrides(task: str, settings: dict) -> dict:
             for k, v in settings.items()}
 
 
-def heldout(task: str, out: str, seeds, only: list[str]) -> None:
+def heldout(task: str, out: str, seeds, only: list[str], part: str | None = None) -> None:
     """Each of `only` on the held-out seeds with its tuned settings (tuning/<name>.json; the
-    preset's own without one), into heldout/<name>.npz and .json."""
+    preset's own without one), into heldout/<name>.npz and .json. `part` 'K/N': a baseline's seeds
+    K, K + N, ... only, into heldout/<name>.partK.npz (N processes share the seeds; `report`
+    joins the parts)."""
     os.makedirs(os.path.join(out, "heldout"), exist_ok=True)
+    suffix = ""
+    if part is not None:
+        k, n = map(int, part.split("/"))
+        seeds, suffix = list(seeds)[k::n], f".part{k}"
     for name in only:
         path = os.path.join(out, "tuning", f"{name}.json")
         settings = {}
@@ -260,9 +267,31 @@ def heldout(task: str, out: str, seeds, only: list[str]) -> None:
                 rs.append(r)
             curves = {"steps": rs[0].env_steps, "return": np.stack([r.episode_return for r in rs])}
             meta["wall_s"] = float(sum(r.wall_time for r in rs))
-        checkpoints.atomic_savez(os.path.join(out, "heldout", f"{name}.npz"), **curves)
-        checkpoints.atomic_write_text(os.path.join(out, "heldout", f"{name}.json"),
+        checkpoints.atomic_savez(os.path.join(out, "heldout", f"{name}{suffix}.npz"), **curves)
+        checkpoints.atomic_write_text(os.path.join(out, "heldout", f"{name}{suffix}.json"),
                                       json.dumps(meta, indent=2))
+
+
+def _join_parts(out: str, name: str) -> None:
+    """heldout/<name>.npz and .json from its parts (in seed order; wall time: the parts' sum), when
+    it has parts and no whole file."""
+    base = os.path.join(out, "heldout", name)
+    parts = sorted(glob.glob(base + ".part*.npz"))
+    if os.path.exists(base + ".npz") or not parts:
+        return
+    curves, metas = [], []
+    for p in parts:
+        with np.load(p) as f:
+            curves.append({k: f[k] for k in f.files})
+        with open(p[:-4] + ".json") as f:
+            metas.append(json.load(f))
+    seeds = [s for m in metas for s in m["seeds"]]
+    order = np.argsort(seeds)
+    ret = np.concatenate([c["return"] for c in curves])[order]
+    checkpoints.atomic_savez(base + ".npz", steps=curves[0]["steps"], **{"return": ret})
+    checkpoints.atomic_write_text(base + ".json", json.dumps(
+        {"seeds": sorted(seeds), "settings": metas[0]["settings"],
+         "wall_s": float(sum(m["wall_s"] for m in metas))}, indent=2))
 
 
 # ---------------------------------------------------------------------------------------- report
@@ -272,6 +301,7 @@ def report(task: str, out: str) -> None:
     gather_tuning(task, out)
     curves, meta = {}, {"wall_s": {}}
     for n in (*METHODS, *BASELINES):
+        _join_parts(out, n)
         path = os.path.join(out, "heldout", f"{n}.npz")
         if os.path.exists(path):
             with np.load(path) as f:
@@ -312,6 +342,7 @@ def report(task: str, out: str) -> None:
     plt.close(fig)
     checkpoints.atomic_write_text(os.path.join(out, "heldout_table.json"), json.dumps(
         {"task": task, "threshold": threshold, "seeds": meta["seeds"], "rows": rows,
+         "budget": budget(task), "fit_steps": summaries.task_budget(base_config(task, "gp_pg")).fit_steps,
          "reference": REFERENCES.get(task)}, indent=2))
     log(f"wrote {figure} and {out}/heldout_table.json")
 
@@ -322,6 +353,8 @@ def main(argv=None) -> int:
     p.add_argument("--task", required=True, choices=[t for t in config_lib.PRESETS
                                                      if "env" in config_lib.PRESETS[t]])
     p.add_argument("--out", default=None, help="default docs/results/standard/<task>")
+    p.add_argument("--part", default=None, metavar="K/N",
+                   help="heldout: a baseline's seeds K, K + N, ... only (N processes at once)")
     p.add_argument("--only", nargs="+", default=[*METHODS, *BASELINES],
                    help="tune, heldout: these methods and baselines")
     args = p.parse_args(argv)
@@ -333,7 +366,7 @@ def main(argv=None) -> int:
     if args.stage == "tune":
         tune(args.task, out, args.only)
     elif args.stage == "heldout":
-        heldout(args.task, out, HELDOUT_SEEDS, args.only)
+        heldout(args.task, out, HELDOUT_SEEDS, args.only, args.part)
     else:
         report(args.task, out)
     return 0
