@@ -56,31 +56,42 @@ def test_gymnax_task_steps_as_gymnax_does(env_id):
     assert task.max_action == float(env.action_space(params).high)
 
 
+_BRAX_ADAPTER_CHECK = """
+import jax, jax.numpy as jnp, numpy as np
+from brax import envs
+from gpguided_jax import tasks
+
+adapter = tasks._brax_adapter("inverted_pendulum")
+env = envs.get_environment("inverted_pendulum")
+actions = jnp.array([0.3, -0.8, 1.0, 0.1, -1.0, 2.5], jnp.float32)
+
+def both(key):
+    s, _ = adapter.reset(key)
+    b = env.reset(key)
+
+    def body(carry, a):
+        s, b = carry
+        s, o, r, d = adapter.step(key, s, a)
+        b = env.step(b, jnp.clip(a, -1.0, 1.0)[None])
+        return (s, b), (o, r, d, b.obs, b.reward, b.done)
+    return jax.lax.scan(body, (s, b), actions)[1]
+
+o, r, d, bo, br, bd = jax.jit(both)(jax.random.key(0))
+np.testing.assert_array_equal(o, bo)
+np.testing.assert_array_equal(r, br)
+np.testing.assert_array_equal(d, bd > 0.5)
+assert adapter.obs_dim == 4 and adapter.max_action == 1.0 and adapter.dt == env.dt
+print("same")
+"""
+
+
 def test_brax_adapter_steps_as_brax_does():
     """brax's inverted pendulum through the adapter and through brax's own Env.step (actions in
-    brax's range [-1, 1]; beyond it the adapter clips): the same observations, rewards and ends."""
-    from brax import envs
-
-    adapter = tasks._brax_adapter("inverted_pendulum")
-    env = envs.get_environment("inverted_pendulum")
-    actions = jnp.array([0.3, -0.8, 1.0, 0.1, -1.0, 2.5], jnp.float32)
-
-    def both(key):
-        s, _ = adapter.reset(key)
-        b = env.reset(key)
-
-        def body(carry, a):
-            s, b = carry
-            s, o, r, d = adapter.step(key, s, a)
-            b = env.step(b, jnp.clip(a, -1.0, 1.0)[None])
-            return (s, b), (o, r, d, b.obs, b.reward, b.done)
-        return jax.lax.scan(body, (s, b), actions)[1]
-
-    o, r, d, bo, br, bd = jax.jit(both)(jax.random.key(0))
-    np.testing.assert_array_equal(o, bo)
-    np.testing.assert_array_equal(r, br)
-    np.testing.assert_array_equal(d, bd > 0.5)
-    assert adapter.obs_dim == 4 and adapter.max_action == 1.0 and adapter.dt == env.dt
+    brax's range [-1, 1]; beyond it the adapter clips): the same observations, rewards and ends.
+    In a subprocess compiling at XLA's level 0, where brax's physics compiles twice as fast (the
+    two sides are compiled alike, so their agreement is still exact)."""
+    proc = run_script(["-c", _BRAX_ADAPTER_CHECK], fast_compile="level0")
+    assert proc.stdout.strip().endswith("same")
 
 
 def _falling_task(limit=1.025):
@@ -177,9 +188,11 @@ def test_unsupported_environments_are_refused_in_one_line(env, message, capsys):
     assert message in err and "gymnax:Pendulum-v1" in err and "\n" not in err
 
 
-# brax's physics compiles slowly on a CPU: its run trains gp_pg alone (one program beside the fit)
+# brax's physics compiles slowly on a CPU: its run trains REINFORCE alone, which needs no
+# hyperparameter fit (one program fewer with brax's step in it); the GP methods on an environment
+# that ends early are the car's run here and test_steps_after_an_early_end_are_masked
 @pytest.mark.parametrize("env,methods", [("gymnax:MountainCarContinuous-v0", ["reinforce", "gp_pg"]),
-                                         ("brax:inverted_pendulum", ["gp_pg"])])
+                                         ("brax:inverted_pendulum", ["reinforce"])])
 def test_a_tiny_run_on_a_standard_environment_from_the_command_line(env, methods, tmp_path):
     """`gpguided reproduce --env ... --preset tiny`: the summary has the task's return columns,
     returns within what the environment can give, and the records are finite."""
