@@ -138,8 +138,7 @@ def tune_method(task: str, method: str, seeds) -> dict:
     for param, values in grids(task)[method]:
         field = "discount" if param == "horizon" else param
         sweep_values = [_discount(task, v) for v in values] if param == "horizon" else values
-        fixed = {("discount" if k == "horizon" else k): (_discount(task, v) if k == "horizon" else v)
-                 for k, v in chosen.items() if k != param}
+        fixed = method_overrides(task, {k: v for k, v in chosen.items() if k != param})
         t0 = time.perf_counter()
         res = sweep.run_sweep(field, sweep_values, method=method, preset=task, seeds=seeds,
                               overrides=fixed, progress=lambda m: None)
@@ -158,9 +157,8 @@ def baseline_kwargs(task: str, name: str, settings: dict) -> dict:
     out = {k: v for k, v in settings.items() if k != "horizon"}
     if "horizon" in settings:
         out["discounting"] = _discount(task, settings["horizon"])
-    for k in ("grad_updates_per_step",):
-        if k in out:
-            out[k] = int(out[k])
+    if "grad_updates_per_step" in out:
+        out["grad_updates_per_step"] = int(out["grad_updates_per_step"])
     return out
 
 

@@ -186,7 +186,7 @@ def _gymnax_adapter(env_id: str) -> _Adapter:
         obs, state, reward, done, _ = env.step_env(key, state, jnp.reshape(action, (1,)), params)
         return state, obs, reward, done
 
-    dt = float(getattr(params, "dt", 0.05 if env_id == "Pendulum-v1" else 1.0))
+    dt = float(getattr(params, "dt", 1.0))  # an environment without a time (the car): 1 s a step
     return _Adapter(int(np.prod(env.observation_space(params).shape)), dt, max_action,
                     int(params.max_steps_in_episode), reset, step)
 
