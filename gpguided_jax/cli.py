@@ -124,6 +124,11 @@ def _reproduce(args) -> int:
         overrides["env"] = args.env
     if args.horizon is not None:
         overrides["discount_horizon"] = args.horizon
+    for flag, field in (("exploration", "exploration"),
+                        ("correlation_time", "noise_correlation_time"),
+                        ("noise_exponent", "noise_exponent"), ("hold_time", "hold_time")):
+        if getattr(args, flag) is not None:
+            overrides[field] = getattr(args, flag)
     from gpguided_jax import config
 
     try:  # a config that makes no sense (an environment that is not supported) is one line
@@ -264,6 +269,7 @@ def _add_demo(sub) -> None:
 
 def _add_reproduce(sub) -> None:
     from gpguided_jax.config import METHODS, PRESETS
+    from gpguided_jax.exploration import NOISES
 
     rep = sub.add_parser(
         "reproduce",
@@ -285,6 +291,19 @@ def _add_reproduce(sub) -> None:
     rep.add_argument("--horizon", type=float, default=None, metavar="SECONDS",
                      help="the discount as a horizon in seconds, gamma = exp(-dt / horizon) "
                      "(replaces the preset's discount)")
+    rep.add_argument("--exploration", default=None, choices=list(NOISES),
+                     help="exploration noise of the Gaussian policies (default: the preset's, "
+                     "white for the paper): white (independent at each decision), ou "
+                     "(Ornstein-Uhlenbeck) or coloured (spectrum f^-beta); guided_direction "
+                     "takes white only")
+    rep.add_argument("--correlation-time", type=float, default=None, metavar="SECONDS",
+                     help="the OU noise's correlation time (default: the preset's, 0.5 s)")
+    rep.add_argument("--noise-exponent", type=float, default=None, metavar="BETA",
+                     help="the coloured noise's exponent beta in [0, 3] (default: the preset's, "
+                     "1: pink)")
+    rep.add_argument("--hold-time", type=float, default=None, metavar="SECONDS",
+                     help="decide every SECONDS and hold the action in between (default: the "
+                     "preset's, 0: every control step)")
     rep.add_argument("--seeds", type=positive_int, default=10, help="number of seeds")
     rep.add_argument("--seed-start", type=non_negative_int, default=REPORTED_SEED_START,
                      help="first seed (the reported results use seeds from 1000 on; the presets "

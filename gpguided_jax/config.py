@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpguided_jax import pendulum, tasks
+from gpguided_jax import exploration, pendulum, tasks
 
 METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction")
 CONTROLLERS = ("linear", "rbf")
@@ -49,6 +49,10 @@ STATIC_FIELDS = (
     "success_hold_time",
     "gp_stride",
     "env",
+    "exploration",
+    "noise_correlation_time",
+    "noise_exponent",
+    "hold_time",
 )
 
 
@@ -91,6 +95,16 @@ class TrainConfig:
         swing-up success (`swingup.success`); episodes shorter than that never succeed.
       env: the environment, 'pendulum' (the paper's, default), 'gymnax:<id>' or 'brax:<name>'
         (`gpguided_jax.tasks`; one continuous action).
+      exploration: the exploration noise of the Gaussian policies (`gpguided_jax.exploration`):
+        'white' (the paper: independent at every decision), 'ou' (Ornstein-Uhlenbeck with
+        correlation time `noise_correlation_time`) or 'coloured' (spectrum f^-`noise_exponent`).
+        guided_direction draws its candidates afresh at each decision and takes 'white' only.
+      noise_correlation_time: tau of 'ou', seconds.
+      noise_exponent: beta of 'coloured' (1 pink, 2 red), in [0, 3].
+      hold_time: the policy decides every `hold_time` seconds (rounded to whole control steps)
+        and holds its action in between; the GP takes in the decision points only, and the
+        noise lives on them. 0 (default): every step. The deterministic evaluation
+        (`eval_episodes`) applies c(s) at every step.
 
     Traced fields (leaves; sweepable by vmap):
       learning_rate: eta of the ascent step.
@@ -137,6 +151,10 @@ class TrainConfig:
     gp_stride: int = 1
     success_hold_time: float = 1.0
     env: str = "pendulum"
+    exploration: str = "white"
+    noise_correlation_time: float = 0.5
+    noise_exponent: float = 1.0
+    hold_time: float = 0.0
     # traced
     learning_rate: Any = 2e-4
     max_grad_norm: Any = 300.0
@@ -165,7 +183,10 @@ class TrainConfig:
 
     @property
     def hyperfit_episodes(self) -> int:
-        return -(-self.hyperfit_samples // self.episode_length)
+        """Episodes of the initial policy that give `hyperfit_samples` pairs, one per decision."""
+        hold = 1 if self.hold_time <= 0 else exploration.hold_steps(self.hold_time,
+                                                                    control_interval(self))
+        return -(-self.hyperfit_samples // exploration.num_decisions(self.episode_length, hold))
 
     def static_dict(self) -> dict:
         return {f: getattr(self, f) for f in STATIC_FIELDS}
@@ -229,6 +250,19 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         _fail("eval_episodes", f"must be an integer >= 0, got {cfg.eval_episodes!r}")
     if not isinstance(cfg.success_hold_time, (int, float)) or not cfg.success_hold_time > 0:
         _fail("success_hold_time", f"must be > 0 seconds, got {cfg.success_hold_time!r}")
+    if cfg.exploration not in exploration.NOISES:
+        _fail("exploration", f"unknown exploration noise {cfg.exploration!r}; choose from "
+              f"{exploration.NOISES}")
+    if cfg.method == "guided_direction" and cfg.exploration != "white":
+        _fail("exploration", "guided_direction draws its candidates afresh at each decision, so "
+              f"it takes 'white' only (hold its choice with hold_time), got {cfg.exploration!r}")
+    for f, ok, what in (("noise_correlation_time", lambda v: v > 0, "> 0 seconds"),
+                        ("noise_exponent", lambda v: 0 <= v <= 3, "in [0, 3]"),
+                        ("hold_time", lambda v: v >= 0, ">= 0 seconds")):
+        v = getattr(cfg, f)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                or not ok(v):
+            _fail(f, f"must be {what}, got {v!r}")
     if not isinstance(cfg.use_baseline, bool):
         _fail("use_baseline", f"must be a bool, got {cfg.use_baseline!r}")
     for f in TRACED_FIELDS:

@@ -119,6 +119,10 @@ class Policy(NamedTuple):
       act: (key, theta, state, ctx) -> (action, aux, score, std): `sample`, then the score and
         the exploration std of that action, sharing their GP and controller evaluations.
       name: the policy's name (static).
+      gaussian: (theta, state, ctx) -> (mean, std, j_mean, j_std) for a Gaussian policy (None for
+        the Gibbs policy): its action is mean + std * eps, and j_mean = grad mean / std and j_std =
+        grad std / std are pytrees like theta. A training loop that supplies eps from a
+        correlated process (`gpguided_jax.exploration`) builds the scores from these.
       reads_gp: whether the policy reads the GP in `ctx` (static). One that does not acts the
         same whatever the GP has taken in, so a training loop may roll out all episodes of an
         update at once, before the GP takes any of them in.
@@ -131,6 +135,7 @@ class Policy(NamedTuple):
     act: Callable[..., tuple[jax.Array, PolicyAux, PolicyParams, jax.Array]]
     name: str
     reads_gp: bool = True
+    gaussian: Callable[..., tuple] | None = None
 
 
 def init_params(controller: controllers_lib.Controller, log_std: float = 0.0, dtype=None):
@@ -344,8 +349,19 @@ def fixed_noise_policy(controller: controllers_lib.Controller) -> Policy:
                              log_std=diff * diff / variance - 1.0)
         return action, aux, score, std
 
+    def gaussian(theta, state, ctx):
+        del ctx
+        chex.assert_rank(state, 1)
+        mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
+        std = jnp.exp(theta.log_std)
+        j_mean = PolicyParams(controller=_scale_tree(grad_mean, 1.0 / std),
+                              log_std=jnp.zeros_like(theta.log_std))
+        j_std = PolicyParams(controller=_scale_tree(grad_mean, 0.0),
+                             log_std=jnp.ones_like(theta.log_std))
+        return mean_action, std, j_mean, j_std
+
     return Policy(sample, log_prob, grad_log_prob, exploration_std, act, "fixed_noise",
-                  reads_gp=False)
+                  reads_gp=False, gaussian=gaussian)
 
 
 # --------------------------------------------------------------------------------------------
@@ -418,7 +434,19 @@ def guided_variance_policy(controller: controllers_lib.Controller, features=_PEN
                         **_empty_gibbs_fields(state.dtype))
         return action, aux, score(theta, action, variance, grad_variance, mean_action, grad_mean), std
 
-    return Policy(sample, log_prob, grad_log_prob, exploration_std, act, "guided_variance")
+    def gaussian(theta, state, ctx):
+        chex.assert_rank(state, 1)
+        variance, grad_variance, mean_action, grad_mean = guided_variance_and_grad(
+            controller, theta.controller, state, ctx, features
+        )
+        std = jnp.sqrt(variance)
+        zero = jnp.zeros_like(theta.log_std)
+        return (mean_action, std,
+                PolicyParams(controller=_scale_tree(grad_mean, 1.0 / std), log_std=zero),
+                PolicyParams(controller=_scale_tree(grad_variance, 0.5 / variance), log_std=zero))
+
+    return Policy(sample, log_prob, grad_log_prob, exploration_std, act, "guided_variance",
+                  gaussian=gaussian)
 
 
 # --------------------------------------------------------------------------------------------

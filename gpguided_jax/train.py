@@ -32,8 +32,8 @@ import numpy as np
 import optax
 
 from gpguided_jax import controllers as controllers_lib
-from gpguided_jax import estimators, hyperfit, kernels, pendulum, policies, sparse_gp, swingup, tasks
-from gpguided_jax.config import TrainConfig, validate
+from gpguided_jax import estimators, exploration, hyperfit, kernels, pendulum, policies, sparse_gp, swingup, tasks
+from gpguided_jax.config import TrainConfig, control_interval, validate
 
 _POLICY_OF_METHOD = {
     "reinforce": "fixed_noise",
@@ -142,6 +142,8 @@ class Program(NamedTuple):
       policy: the method's policy (fixed noise, guided variance or Gibbs).
       behaviour: the fixed-noise policy that collects the hyperparameter-fit data.
       task: the environment (`tasks.make_task(config.env)`).
+      hold: control steps per decision (`config.hold_time`; 1: every step).
+      noise: the exploration noise over an episode's decision points (`exploration.make_noise`).
     """
 
     config: TrainConfig
@@ -149,6 +151,8 @@ class Program(NamedTuple):
     policy: policies.Policy
     behaviour: policies.Policy
     task: tasks.Task
+    hold: int = 1
+    noise: exploration.NoiseProcess | None = None
 
     @property
     def dtype(self):
@@ -173,7 +177,13 @@ def make_program(cfg: TrainConfig) -> Program:
     policy = policies.make_policy(
         _POLICY_OF_METHOD[cfg.method], controller, num_candidates=cfg.num_candidates,
         features=task.features)
-    return Program(cfg, controller, policy, policies.make_policy("fixed_noise", controller), task)
+    dt = control_interval(cfg)
+    hold = exploration.hold_steps(cfg.hold_time, dt)
+    noise = exploration.make_noise(
+        cfg.exploration, exploration.num_decisions(cfg.episode_length, hold), hold * dt,
+        correlation_time=cfg.noise_correlation_time, exponent=cfg.noise_exponent)
+    return Program(cfg, controller, policy, policies.make_policy("fixed_noise", controller), task,
+                   hold, noise)
 
 
 def _features(prog: Program, states, actions):
@@ -201,46 +211,92 @@ def policy_context(cfg: TrainConfig, gp, kernel) -> policies.PolicyContext:
 # ------------------------------------------------------------------------------------------------
 
 
-def run_episode(prog: Program, key, act, cfg: TrainConfig, num_steps: int):
-    """One episode of `num_steps` steps of the task, acting with `act(key, obs) -> (action, out)`.
+def run_episode(prog: Program, key, act, cfg: TrainConfig, num_steps: int, hold: int = 1,
+                xs=None):
+    """One episode of `num_steps` steps of the task, acting with `act(key, obs) -> (action, out)`
+    (`act(key, obs, x)` with x the decision's entry of `xs`, if given) every `hold` steps and
+    holding the action in between.
 
-    Returns (obs, next_obs, actions, rewards, alive, outs), each with a leading (num_steps,) axis;
-    `alive` is None for a task that never ends early. After an episode's end the environment stays
-    in its last state, and the rewards are 0 (module notes of `gpguided_jax.tasks`).
+    Returns (obs, next_obs, actions, rewards, alive, outs): the first four with a leading
+    (num_steps,) axis, `alive` (num_steps,) bool or None for a task that never ends early, and
+    `outs` with a leading axis of decisions, `exploration.num_decisions(num_steps, hold)`. After
+    an episode's end the environment stays in its last state, and the rewards are 0 (module notes
+    of `gpguided_jax.tasks`).
     """
     task = prog.task
     key_reset, key_steps = jax.random.split(key)
     env_state, obs = task.reset(key_reset, cfg)
+    call = (lambda k, o, x: act(k, o)) if xs is None else act
 
-    def body(carry, step_key):
+    def env_step(carry, key_env, a):
         env_state, obs, alive = carry
-        key_act, key_env = jax.random.split(step_key)
-        a, out = act(key_act, obs)
         new_state, new_obs, r, done = task.step(key_env, env_state, a, cfg)
         if not task.terminates:
-            return (new_state, new_obs, alive), (obs, new_obs, a, r, out)
+            return (new_state, new_obs, alive), (obs, new_obs, r, alive)
         keep = lambda new, old: jnp.where(alive, new, old)  # noqa: E731
         carry = (jax.tree_util.tree_map(keep, new_state, env_state), keep(new_obs, obs),
                  alive & ~done)
-        return carry, (obs, carry[1], a, jnp.where(alive, r, jnp.zeros_like(r)), (out, alive))
+        return carry, (obs, carry[1], jnp.where(alive, r, jnp.zeros_like(r)), alive)
 
-    keys = jax.random.split(key_steps, num_steps)
-    _, (o, o_next, a, r, out) = jax.lax.scan(body, (env_state, obs, jnp.ones((), bool)), keys)
-    alive = None
-    if task.terminates:
-        out, alive = out
-    return o, o_next, a, r, alive, out
+    def decide(carry, key_and_x):
+        step_key, x = key_and_x
+        key_act, key_env = jax.random.split(step_key)
+        a, out = call(key_act, carry[1], x)
+        if hold == 1:
+            carry, per_step = env_step(carry, key_env, a)
+            return carry, (per_step, a, out)
+        carry, per_step = jax.lax.scan(lambda c, k: env_step(c, k, a), carry,
+                                       jax.random.split(key_env, hold))
+        return carry, (per_step, a, out)
+
+    n = exploration.num_decisions(num_steps, hold)
+    keys = jax.random.split(key_steps, n)
+    _, ((o, o_next, r, alive), a, out) = jax.lax.scan(
+        decide, (env_state, obs, jnp.ones((), bool)), (keys, xs))
+    if hold > 1:
+        steps = lambda v: v.reshape((n * hold,) + v.shape[2:])[:num_steps]  # noqa: E731
+        o, o_next, r, alive = map(steps, (o, o_next, r, alive))
+        a = jnp.repeat(a, hold)[:num_steps]
+    return o, o_next, a, r, (alive if task.terminates else None), out
+
+
+def spread_decisions(values, hold: int, num_steps: int, fill: str = "zero"):
+    """Per-decision values (D, ...) as per-step values (num_steps, ...): at the decision steps and
+    0 in between (`fill='zero'`, for scores) or held (`fill='hold'`)."""
+    if hold == 1:
+        return values
+    if fill == "hold":
+        return jnp.repeat(values, hold, axis=0)[:num_steps]
+    padded = jnp.zeros((values.shape[0], hold) + values.shape[1:], values.dtype)
+    padded = padded.at[:, 0].set(values)
+    return padded.reshape((-1,) + values.shape[1:])[:num_steps]
 
 
 def rollout(prog: Program, key, theta, ctx, policy, cfg: TrainConfig) -> Episode:
-    """Step 1: one episode of `episode_length` steps with `policy` (GP in `ctx` held fixed)."""
+    """Step 1: one episode of `episode_length` steps with `policy` (GP in `ctx` held fixed),
+    deciding every `prog.hold` steps with the exploration noise `prog.noise`."""
+    hold, noise, length = prog.hold, prog.noise, prog.config.episode_length
+    if noise is None or noise.name == "white":
+        def act(k, obs):
+            a, _, score, std = policy.act(k, theta, obs, ctx)
+            return a, (score, std)
 
-    def act(k, obs):
-        a, _, score, std = policy.act(k, theta, obs, ctx)
-        return a, (score, std)
+        o, o_next, a, r, alive, (scores, std) = run_episode(prog, key, act, cfg, length, hold)
+    else:
+        # correlated noise: drawn for the whole episode, then each decision's score from the
+        # policy's Gaussian parts (`exploration.correlated_scores`)
+        eps, xi = noise.sample(jax.random.fold_in(key, 1), prog.dtype)
 
-    o, o_next, a, r, alive, (scores, std) = run_episode(prog, key, act, cfg,
-                                                        prog.config.episode_length)
+        def act(k, obs, e):
+            del k
+            mean, std, j_mean, j_std = policy.gaussian(theta, obs, ctx)
+            return mean + std * e, (j_mean, j_std, std)
+
+        o, o_next, a, r, alive, (j_mean, j_std, std) = run_episode(prog, key, act, cfg, length,
+                                                                   hold, xs=eps)
+        scores = exploration.correlated_scores(noise, eps, xi, j_mean, j_std)
+    scores = jax.tree_util.tree_map(lambda g: spread_decisions(g, hold, length), scores)
+    std = spread_decisions(std, hold, length, fill="hold")
     if alive is not None:
         scores = jax.tree_util.tree_map(
             lambda g: g * alive.reshape((-1,) + (1,) * (g.ndim - 1)).astype(g.dtype), scores)
@@ -366,7 +422,8 @@ def _take_in(prog: Program, cfg: TrainConfig, state: TrainState, gp, ep: Episode
     static = prog.config
     fired, error_ratio = jnp.zeros((), jnp.int32), jnp.zeros((), prog.dtype)
     if static.uses_gp:
-        k = static.gp_stride  # every k-th step of the episode joins the GP (1: all)
+        # every k-th decision of the episode joins the GP (gp_stride 1, no hold: every step)
+        k = static.gp_stride * prog.hold
         valid = None if ep.alive is None else ep.alive[::k]
         gp, fired, health = take_in_episode(
             gp, state.kernel, _features(prog, ep.states, ep.actions)[::k], returns[::k],
@@ -519,9 +576,11 @@ def collect_valid(prog: Program, key, cfg: TrainConfig):
     keys = jax.random.split(key, prog.config.hyperfit_episodes)
     eps = jax.vmap(lambda k: rollout(prog, k, theta, ctx, prog.behaviour, cfg))(keys)
     returns = jax.vmap(estimators.discounted_returns, in_axes=(0, None))(eps.rewards, cfg.discount)
-    xs = jax.vmap(lambda s, a: _features(prog, s, a))(eps.states, eps.actions).reshape(-1, d)
-    valid = None if eps.alive is None else eps.alive.reshape(-1)
-    return xs, returns.reshape(-1), valid
+    h = prog.hold  # the pairs at the decision points
+    xs = jax.vmap(lambda s, a: _features(prog, s, a))(eps.states[:, ::h],
+                                                      eps.actions[:, ::h]).reshape(-1, d)
+    valid = None if eps.alive is None else eps.alive[:, ::h].reshape(-1)
+    return xs, returns[:, ::h].reshape(-1), valid
 
 
 def fit_subset(prog: Program, key, cfg: TrainConfig):

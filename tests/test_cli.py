@@ -75,6 +75,29 @@ def test_bad_arguments_are_refused_in_one_line(args, message, capsys):
     assert message in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("args,message", [
+    (["--exploration", "ou", "--methods", "guided_direction"], "takes 'white' only"),
+    (["--exploration", "coloured", "--noise-exponent", "4"], "noise_exponent: must be in [0, 3]"),
+    (["--hold-time", "-0.1"], "hold_time: must be >= 0 seconds"),
+    (["--exploration", "ou", "--correlation-time", "0"], "noise_correlation_time: must be > 0"),
+])
+def test_bad_exploration_is_refused_in_one_line(args, message):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["reproduce", "--preset", "tiny", "--compile-cache", "none", *args])
+    assert message in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_exploration_flags_reach_the_config(monkeypatch):
+    from gpguided_jax import reproduce
+
+    seen = {}
+    monkeypatch.setattr(reproduce, "reproduce", lambda **kw: seen.update(kw) or {"complete": False})
+    cli.main(["reproduce", "--preset", "tiny", "--methods", "reinforce", "--compile-cache", "none",
+              "--exploration", "ou", "--correlation-time", "0.2", "--hold-time", "0.01"])
+    assert seen["overrides"] == {"exploration": "ou", "noise_correlation_time": 0.2,
+                                 "hold_time": 0.01}
+
+
 def test_import_does_not_touch_the_x64_flag():
     proc = _python("import jax, gpguided_jax, gpguided_jax.train, gpguided_jax.reproduce; "
                    "print(jax.config.jax_enable_x64)", JAX_ENABLE_X64="0")

@@ -36,7 +36,8 @@ TEXT_FILES = sorted(
     if p.endswith((".py", ".md", ".toml", ".cfg", ".txt", ".yml", ".yaml", ".cff")) or p == "Makefile"
     if p != "CHANGELOG.md" and not p.startswith("docs/results/"))
 # The sections of docs/design.md that the code cites as docs/design.md#<anchor>.
-DESIGN_ANCHORS = ("pendulum", "gp-model", "sparse-gp", "policies", "estimators", "algorithm-1",
+DESIGN_ANCHORS = ("pendulum", "gp-model", "sparse-gp", "policies", "estimators", "exploration",
+                  "algorithm-1",
                   "tasks", "presets", "deviations", "decisions")
 
 
