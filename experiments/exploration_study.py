@@ -1,0 +1,331 @@
+"""Exploration that can find a swing-up: the four methods on the swing-up preset with temporally
+correlated noise and held actions (design: docs/design.md#exploration).
+
+The grid below was written down before any of its runs.
+
+Stages (each writes under --out, default docs/results/exploration):
+
+``reach``   What exploration reaches before any learning: each method's initial policy (the RBF
+            controller at its initial weights, the GP empty), 20 episodes for each of 10 seeds, per
+            scheme in `REACH_SCHEMES` and amplitude: the share of episodes that rise above
+            horizontal at some step, and that come within 0.3 rad of upright. Writes reach.json.
+``tune``    Tuning seeds 100-101 (never reported): every method gets the same budget,
+            `CONFIGS_PER_METHOD` (12) configurations x 2 seeds, each a full run of the preset
+            (270,000 environment steps): scheme x learning rate x horizon (`GRID`), at the larger
+            amplitude of `AMPLITUDE`. Score: the final deterministic success rate, ties broken by the
+            final reward per step. Writes tuning.json.
+``heldout`` Held-out seeds 1000-1019: each method with its chosen settings, and the ablation: the
+            same method and settings under every scheme it can take (`ABLATION`). One
+            `gpguided_jax.reproduce` run per (method, scheme) under heldout/. Writes heldout.json.
+``report``  heldout.md (steps to 50% and 90% success, final success and reward per cell; the
+            guidance against the same correlated noise unguided), the figure, and the action
+            length-scale fitted under each scheme.
+
+The baselines (brax PPO and SAC) are not re-tuned here; the swing-up study's held-out runs
+(experiments/swingup_study.py) hold their white-noise-era settings.
+
+Usage:
+  python experiments/exploration_study.py reach
+  python experiments/exploration_study.py tune
+  python experiments/exploration_study.py heldout
+  python experiments/exploration_study.py report
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+
+import matplotlib
+
+matplotlib.use("Agg")
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import swingup_study as S  # noqa: E402
+
+import gpguided_jax  # noqa: E402
+from gpguided_jax import checkpoints, reproduce, runtime, sweep  # noqa: E402
+from gpguided_jax import config as config_lib  # noqa: E402
+from gpguided_jax import stats as stats_lib  # noqa: E402
+from gpguided_jax import train as train_lib  # noqa: E402
+
+METHODS = config_lib.METHODS
+TUNING_SEEDS = (100, 101)
+HELDOUT_SEEDS = tuple(range(1000, 1020))
+REACH_SEEDS = tuple(range(1000, 1010))
+REACH_EPISODES = 20
+LN = math.log
+
+# The exploration schemes (TrainConfig overrides).
+SCHEMES = {
+    "white": {},
+    "ou": {"exploration": "ou", "noise_correlation_time": 0.5},
+    "coloured": {"exploration": "coloured", "noise_exponent": 2.0},
+    "hold": {"hold_time": 0.2},
+    "hold_short": {"hold_time": 0.05},
+    "hold_long": {"hold_time": 0.5},
+}
+REACH_SCHEMES = {
+    "white": {},
+    "ou 0.2 s": {"exploration": "ou", "noise_correlation_time": 0.2},
+    "ou 0.5 s": {"exploration": "ou", "noise_correlation_time": 0.5},
+    "ou 1 s": {"exploration": "ou", "noise_correlation_time": 1.0},
+    "coloured 1": {"exploration": "coloured", "noise_exponent": 1.0},
+    "coloured 1.5": {"exploration": "coloured", "noise_exponent": 1.5},
+    "coloured 2": {"exploration": "coloured", "noise_exponent": 2.0},
+    "hold 0.05 s": {"hold_time": 0.05},
+    "hold 0.2 s": {"hold_time": 0.2},
+    "hold 0.5 s": {"hold_time": 0.5},
+}
+# The exploration amplitude of each method: the fixed noise's initial sigma (N m), the guided
+# variance's variance where the GP knows nothing, the Gibbs candidates' spread (both (N m)^2).
+AMPLITUDE = {
+    "reinforce": ("init_log_std", [LN(1.5), LN(4.0)]),
+    "gp_pg": ("init_log_std", [LN(1.5), LN(4.0)]),
+    "guided_variance": ("guided_variance_scale", [2.25, 16.0]),
+    "guided_direction": ("candidate_scale", [2.25, 16.0]),
+}
+HORIZONS = (0.5, 2.0)  # seconds: the preset's 0.99 per 5 ms step, and four times it
+# The tuning holds the amplitude at the larger value (the reach stage: the smaller one never rises
+# above horizontal under any scheme) and tries the preset's tuned learning rate and a tenth of it.
+LR_FACTORS = (1.0, 0.1)
+# scheme x learning rate x horizon: 3 x 2 x 2 = 12 configurations per method
+GRID = {
+    "reinforce": ("ou", "coloured", "hold"),
+    "gp_pg": ("ou", "coloured", "hold"),
+    "guided_variance": ("ou", "coloured", "hold"),
+    "guided_direction": ("hold_short", "hold", "hold_long"),  # white only: its choice is held
+}
+CONFIGS_PER_METHOD = 12
+ABLATION = {
+    "reinforce": ("white", "ou", "coloured", "hold"),
+    "gp_pg": ("white", "ou", "coloured", "hold"),
+    "guided_variance": ("white", "ou", "coloured", "hold"),
+    "guided_direction": ("white", "hold_short", "hold", "hold_long"),
+}
+DTYPE = "float32"
+
+
+def log(msg: str) -> None:
+    print(f"[{time.strftime('%X')}] {msg}", file=sys.stderr, flush=True)
+
+
+def preset(method: str, **overrides) -> config_lib.TrainConfig:
+    return config_lib.preset("swingup", method=method, dtype=DTYPE, **overrides)
+
+
+# ------------------------------------------------------------------------------------------ reach
+
+
+def reach(out: str) -> dict:
+    """Share of the initial policy's episodes above horizontal / near upright, per method, scheme
+    and amplitude."""
+    rows = []
+    for method in METHODS:
+        field, amplitudes = AMPLITUDE[method]
+        for name, scheme in REACH_SCHEMES.items():
+            if method == "guided_direction" and scheme.get("exploration"):
+                continue
+            for amp in amplitudes:
+                cfg = preset(method, **scheme, **{field: amp})
+                above, upright = _reach_one(cfg)
+                rows.append(dict(method=method, scheme=name, **{field: amp},
+                                 above_horizontal=above, near_upright=upright))
+                log(f"[reach] {method} {name} {field}={amp:.3g}: above {above:.2f}, "
+                    f"upright {upright:.2f}")
+    res = {"seeds": list(REACH_SEEDS), "episodes_per_seed": REACH_EPISODES, "rows": rows}
+    checkpoints.atomic_write_text(os.path.join(out, "reach.json"), json.dumps(res, indent=2))
+    return res
+
+
+def _reach_one(cfg) -> tuple[float, float]:
+    prog = train_lib.make_program(cfg)
+    state = jax.jit(train_lib.make_train(cfg).init)(jax.random.PRNGKey(REACH_SEEDS[0]), cfg)
+    ctx = train_lib.policy_context(cfg, state.gp, state.kernel)
+    keys = jnp.stack([jax.random.split(jax.random.PRNGKey(s), REACH_EPISODES)
+                      for s in REACH_SEEDS]).reshape(-1, 2)
+
+    @jax.jit
+    def heights(key):
+        ep = train_lib.rollout(prog, key, state.theta, ctx, prog.policy, cfg)
+        off_upright = jnp.abs(ep.next_states[:, 0] - jnp.pi)  # phi in [0, 2 pi), 0 hanging
+        return jnp.any(off_upright < jnp.pi / 2), jnp.any(off_upright < 0.3)
+
+    above, upright = jax.lax.map(heights, keys)
+    return float(jnp.mean(above)), float(jnp.mean(upright))
+
+
+# ------------------------------------------------------------------------------------------- tune
+
+
+def tune(out: str, only=None) -> dict:
+    path = os.path.join(out, "tuning.json")
+    rep = {"seeds": list(TUNING_SEEDS), "dtype": DTYPE, "methods": {}}
+    if os.path.exists(path):
+        with open(path) as f:
+            rep = json.load(f)
+    rep["env_steps"] = S.budget(preset("reinforce"))
+    for method in only or METHODS:
+        field, amplitudes = AMPLITUDE[method]
+        lr0 = float(preset(method).learning_rate)
+        rates = [lr0 * f for f in LR_FACTORS]
+        tried, t0 = [], time.perf_counter()
+        for scheme in GRID[method]:
+            for horizon in HORIZONS:
+                fixed = {field: amplitudes[-1], "discount_horizon": horizon}
+                res = sweep.run_sweep("learning_rate", rates, method=method, preset="swingup",
+                                      seeds=TUNING_SEEDS, progress=lambda m: None,
+                                      overrides={**SCHEMES[scheme], **fixed, "dtype": DTYPE})
+                for i, lr in enumerate(rates):
+                    rec = {k: res.records[k][i] for k in ("eval_success_rate", "eval_reward")}
+                    succ, rew = S.score_method(rec)
+                    tried.append(dict(settings={"scheme": scheme, **fixed, "learning_rate": lr},
+                                      success=succ, reward=rew))
+                    log(f"[tune {method}] {scheme}, horizon {horizon:g} s, lr {lr:.3g}: "
+                        f"success {succ:.2f}, reward {rew:.3f} ({time.perf_counter() - t0:.0f}s)")
+        assert len(tried) == CONFIGS_PER_METHOD
+        rep["methods"][method] = dict(tried=tried, chosen=S._best(tried)["settings"],
+                                      wall_s=time.perf_counter() - t0)
+        checkpoints.atomic_write_text(path, json.dumps(rep, indent=2))
+    return rep
+
+
+# ---------------------------------------------------------------------------------------- heldout
+
+
+def settings_of(chosen: dict, scheme: str) -> dict:
+    """The config overrides of a method's chosen settings with `scheme` in place of its own."""
+    s = {k: v for k, v in chosen.items() if k != "scheme"}
+    return {**s, **SCHEMES[scheme]}
+
+
+def heldout(out: str, only=None) -> None:
+    with open(os.path.join(out, "tuning.json")) as f:
+        tuning = json.load(f)
+    path = os.path.join(out, "heldout.json")
+    meta = {"seeds": list(HELDOUT_SEEDS), "runs": {}}
+    if os.path.exists(path):
+        with open(path) as f:
+            meta = json.load(f)
+    for method in only or METHODS:
+        chosen = tuning["methods"][method]["chosen"]
+        for scheme in ABLATION[method]:
+            key = f"{method}/{scheme}"
+            if key in meta["runs"]:
+                continue
+            run_dir = os.path.join(out, "heldout", method, scheme)
+            overrides = settings_of(chosen, scheme)
+            t0 = time.perf_counter()
+            reproduce.reproduce("swingup", HELDOUT_SEEDS, [method], run_dir, dtype=DTYPE,
+                                chunk_size=20, overrides=overrides, progress=log,
+                                gp_program="per_method")
+            meta["runs"][key] = dict(overrides=overrides, wall_s=time.perf_counter() - t0,
+                                     chosen=scheme == chosen["scheme"])
+            checkpoints.atomic_write_text(path, json.dumps(meta, indent=2))
+            log(f"[heldout] {key}: {meta['runs'][key]['wall_s']:.0f}s")
+
+
+# ----------------------------------------------------------------------------------------- report
+
+
+def _curves(out: str, method: str, scheme: str):
+    run_dir = os.path.join(out, "heldout", method, scheme)
+    with np.load(os.path.join(run_dir, "results.npz")) as f:
+        success = np.asarray(f["eval_success_rate"][0], float)
+        reward = np.asarray(f["eval_reward"][0], float)
+    with open(os.path.join(out, "heldout.json")) as f:
+        overrides = json.load(f)["runs"][f"{method}/{scheme}"]["overrides"]
+    steps = S.method_env_steps(preset(method, **overrides))
+    return steps, success, reward
+
+
+def action_length_scale(out: str, method: str, scheme: str) -> float | None:
+    """Median over seeds of the fitted action length-scale (N m), if the run fitted a GP."""
+    path = os.path.join(out, "heldout", method, scheme, "kernels.npz")
+    if not os.path.exists(path):
+        return None
+    with np.load(path) as f:
+        return float(np.median(np.asarray(f["lengthscales"], float)[:, -1]))
+
+
+def report(out: str) -> str:
+    with open(os.path.join(out, "heldout.json")) as f:
+        meta = json.load(f)
+    table = {"seeds": meta["seeds"], "rows": [], "guidance": []}
+    finals = {}
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for key, run in meta["runs"].items():
+        method, scheme = key.split("/")
+        steps, success, reward = _curves(out, method, scheme)
+        smooth = S.smoothed(success, method)
+        row = dict(method=method, scheme=scheme, chosen=run["chosen"], settings=run["overrides"],
+                   final_success=float(S.summaries.final_performance(success).mean()),
+                   final_reward=float(S.summaries.final_performance(reward).mean()),
+                   action_length_scale=action_length_scale(out, method, scheme),
+                   wall_s=run["wall_s"])
+        for level in (0.5, 0.9):
+            hit = S.steps_to(steps, smooth, level)
+            med, lo, hi = S.median_ci(hit)
+            row[f"steps_to_{int(level * 100)}"] = dict(
+                seeds=int(np.isfinite(hit).sum()), median=med, ci=[lo, hi])
+        table["rows"].append(row)
+        finals[key] = S.summaries.final_performance(reward)
+        if run["chosen"]:
+            for ax, y in zip(axes, (smooth, reward)):
+                m, h = stats_lib.t_interval(y)
+                ax.plot(steps, m, label=f"{method} ({scheme})")
+                ax.fill_between(steps, m - h, m + h, alpha=0.2)
+    for scheme in ("ou", "coloured", "hold"):
+        a, b = f"guided_variance/{scheme}", f"gp_pg/{scheme}"
+        if a in finals and b in finals:
+            p = stats_lib.probability_of_improvement(finals[a], finals[b])
+            lo, hi = stats_lib.probability_of_improvement_ci(finals[a], finals[b])
+            table["guidance"].append(dict(scheme=scheme, p=p, ci=[lo, hi]))
+    axes[0].set_ylabel("success rate (trailing mean over 5 updates)")
+    axes[1].set_ylabel("reward per step")
+    for ax in axes:
+        ax.set_xlabel("environment steps")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"Swing-up, each method's chosen exploration: mean and 95% t-band over "
+                 f"{len(meta['seeds'])} held-out seeds")
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "exploration_swingup.png"), dpi=120)
+    plt.close(fig)
+    checkpoints.atomic_write_text(os.path.join(out, "heldout_table.json"),
+                                  json.dumps(table, indent=2))
+    return json.dumps(table["rows"], indent=1)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("stage", choices=("reach", "tune", "heldout", "report"))
+    ap.add_argument("--out", default="docs/results/exploration")
+    ap.add_argument("--only", nargs="+", default=None, choices=METHODS, help="these methods only")
+    ap.add_argument("--compile-cache", default=runtime.DEFAULT_COMPILE_CACHE)
+    args = ap.parse_args(argv)
+    runtime.set_compile_cache(args.compile_cache)
+    os.makedirs(args.out, exist_ok=True)
+    if args.stage == "reach":
+        reach(args.out)
+    elif args.stage == "tune":
+        tune(args.out, args.only)
+    elif args.stage == "heldout":
+        heldout(args.out, args.only)
+    else:
+        print(report(args.out))
+    return 0
+
+
+if __name__ == "__main__":
+    gpguided_jax.enable_x64(False)
+    sys.exit(main())
