@@ -23,6 +23,7 @@ import argparse
 import csv
 import glob
 import json
+import math
 import os
 import re
 import sys
@@ -363,6 +364,93 @@ def standard_tuning_table(task: str) -> str:
     return "\n".join(lines)
 
 
+def exploration_reach_table() -> str:
+    """`experiments/exploration_study.py reach`: what each scheme reaches before any learning."""
+    path = os.path.join("exploration", "reach.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        d = json.load(f)
+    amp_fields = ("init_log_std", "guided_variance_scale", "candidate_scale")
+
+    def amplitude(r):
+        if "init_log_std" in r:
+            return f"σ = {math.exp(r['init_log_std']):.3g} N·m"
+        k = next(k for k in amp_fields if k in r)
+        return f"{k} = {r[k]:g} (N·m)²"
+
+    lines = ["| method | exploration | amplitude | above horizontal | within 0.3 rad of upright |",
+             "|---|---|---|---|---|"]
+    for r in d["rows"]:
+        lines.append(f"| {r['method']} | {r['scheme']} | {amplitude(r)} | "
+                     f"{r['above_horizontal']:.0%} | {r['near_upright']:.0%} |")
+    seeds = d["seeds"]
+    lines.append("")
+    lines.append(f"Share of {d['episodes_per_seed']} episodes per seed (seeds {seeds[0]}–{seeds[-1]}) "
+                 "of each method's initial policy (RBF controller at its initial weights, empty GP) "
+                 "that rise above horizontal, or within 0.3 rad of upright, at some step. "
+                 + _source(path))
+    return "\n".join(lines)
+
+
+def exploration_tuning_table() -> str:
+    """`experiments/exploration_study.py tune`: every configuration tried on the tuning seeds."""
+    path = os.path.join("exploration", "tuning.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        d = json.load(f)
+    lines = ["| method | exploration | horizon [s] | learning rate | success | reward per step | "
+             "chosen |", "|---|---|---|---|---|---|---|"]
+    for name, r in d["methods"].items():
+        for t in r["tried"]:
+            s = t["settings"]
+            lines.append(f"| {name} | {s['scheme']} | {s['discount_horizon']:g} | "
+                         f"{s['learning_rate']:.3g} | {t['success']:.2f} | {t['reward']:.3f} | "
+                         f"{'yes' if s == r['chosen'] else ''} |")
+    lines.append("")
+    lines.append(f"Tuning seeds {d['seeds']} ({d['dtype']}), {d['env_steps']:,} environment steps "
+                 "per run; success and reward per step of the deterministic policy at the end of "
+                 "the run. " + _source(path))
+    return "\n".join(lines)
+
+
+def _steps_cell(c: dict, seeds: int) -> str:
+    if c["seeds"] == 0:
+        return f"0/{seeds}"
+    fmt = lambda v: "∞" if not math.isfinite(v) else f"{v / 1000:.0f}k"  # noqa: E731
+    return (f"{c['seeds']}/{seeds}; median {fmt(c['median'])} "
+            f"[{fmt(c['ci'][0])}, {fmt(c['ci'][1])}]")
+
+
+def exploration_table() -> str:
+    """`experiments/exploration_study.py report`: the held-out ablation, scheme x method."""
+    path = os.path.join("exploration", "heldout_table.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        d = json.load(f)
+    n = len(d["seeds"])
+    lines = ["| method | exploration | tuned choice | 50% success: seeds; steps [95% CI] | "
+             "90% success: the same | final success | final reward/step | action length-scale "
+             "[N·m] | wall time |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in d["rows"]:
+        ls = "–" if r["action_length_scale"] is None else f"{r['action_length_scale']:.3g}"
+        lines.append(f"| {r['method']} | {r['scheme']} | {'yes' if r['chosen'] else ''} | "
+                     f"{_steps_cell(r['steps_to_50'], n)} | {_steps_cell(r['steps_to_90'], n)} | "
+                     f"{r['final_success']:.2f} | {r['final_reward']:.3f} | {ls} | "
+                     f"{r['wall_s']:.0f} s |")
+    lines.append("")
+    lines.append(f"Held-out seeds {d['seeds'][0]}–{d['seeds'][-1]}; each row is the method's tuned "
+                 "learning rate and horizon with the exploration named. Steps to X% success: the "
+                 "first update at which the trailing mean over 5 updates of the deterministic "
+                 "success reaches X, GP methods' hyperparameter-fit episodes included; the median "
+                 "over all seeds with a bootstrap interval (∞ where more than half never get "
+                 "there). Action length-scale: the fitted kernel's, median over seeds. Wall time: "
+                 "all seeds, compilation included, on a 2-core CPU shared with other runs. "
+                 + _source(path))
+    if d["guidance"]:
+        lines += ["", "| exploration | P(guided_variance > gp_pg), final reward | 95% CI |",
+                  "|---|---|---|"]
+        for g in d["guidance"]:
+            lines.append(f"| {g['scheme']} | {g['p']:.2f} | [{g['ci'][0]:.2f}, {g['ci'][1]:.2f}] |")
+    return "\n".join(lines)
+
+
 STANDARD_TASKS = ("pendulum-v1", "mountaincar-continuous")  # the tasks with a comparison
 
 TABLES = {
@@ -380,6 +468,9 @@ TABLES = {
     "swingup": swingup_table,
     "swingup_warm": swingup_warm_table,
     "swingup_sac": swingup_sac_table,
+    "exploration_reach": exploration_reach_table,
+    "exploration_tuning": exploration_tuning_table,
+    "exploration": exploration_table,
     **{f"standard_{t.replace('-', '_')}": (lambda t=t: standard_table(t)) for t in STANDARD_TASKS},
     **{f"standard_tuning_{t.replace('-', '_')}": (lambda t=t: standard_tuning_table(t))
        for t in STANDARD_TASKS},

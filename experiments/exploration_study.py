@@ -12,8 +12,8 @@ Stages (each writes under --out, default docs/results/exploration):
 ``tune``    Tuning seeds 100-101 (never reported): every method gets the same budget,
             `CONFIGS_PER_METHOD` (12) configurations x 2 seeds, each a full run of the preset
             (270,000 environment steps): scheme x learning rate x horizon (`GRID`), at the larger
-            amplitude of `AMPLITUDE`. Score: the final deterministic success rate, ties broken by the
-            final reward per step. Writes tuning.json.
+            amplitude of `AMPLITUDE`, with the baseline. Score: the final deterministic success
+            rate, ties broken by the final reward per step. Writes tuning.json.
 ``heldout`` Held-out seeds 1000-1019: each method with its chosen settings, and the ablation: the
             same method and settings under every scheme it can take (`ABLATION`). One
             `gpguided_jax.reproduce` run per (method, scheme) under heldout/. Writes heldout.json.
@@ -67,11 +67,11 @@ LN = math.log
 # The exploration schemes (TrainConfig overrides).
 SCHEMES = {
     "white": {},
-    "ou": {"exploration": "ou", "noise_correlation_time": 0.5},
-    "coloured": {"exploration": "coloured", "noise_exponent": 2.0},
-    "hold": {"hold_time": 0.2},
-    "hold_short": {"hold_time": 0.05},
-    "hold_long": {"hold_time": 0.5},
+    "ou_0.5s": {"exploration": "ou", "noise_correlation_time": 0.5},
+    "coloured_2": {"exploration": "coloured", "noise_exponent": 2.0},
+    "hold_0.05s": {"hold_time": 0.05},
+    "hold_0.2s": {"hold_time": 0.2},
+    "hold_0.5s": {"hold_time": 0.5},
 }
 REACH_SCHEMES = {
     "white": {},
@@ -87,6 +87,8 @@ REACH_SCHEMES = {
 }
 # The exploration amplitude of each method: the fixed noise's initial sigma (N m), the guided
 # variance's variance where the GP knows nothing, the Gibbs candidates' spread (both (N m)^2).
+# The reach stage tries both; the tuning holds the larger (the smaller never rises above
+# horizontal under any scheme).
 AMPLITUDE = {
     "reinforce": ("init_log_std", [LN(1.5), LN(4.0)]),
     "gp_pg": ("init_log_std", [LN(1.5), LN(4.0)]),
@@ -94,22 +96,25 @@ AMPLITUDE = {
     "guided_direction": ("candidate_scale", [2.25, 16.0]),
 }
 HORIZONS = (0.5, 2.0)  # seconds: the preset's 0.99 per 5 ms step, and four times it
-# The tuning holds the amplitude at the larger value (the reach stage: the smaller one never rises
-# above horizontal under any scheme) and tries the preset's tuned learning rate and a tenth of it.
-LR_FACTORS = (1.0, 0.1)
-# scheme x learning rate x horizon: 3 x 2 x 2 = 12 configurations per method
+# The grid: scheme x learning rate x horizon = 2 x 3 x 2 = 12 configurations per method, with the
+# baseline on (`use_baseline`). The schemes are the two that reach highest before learning.
+# A first grid (the preset's learning rate and a tenth of it, no baseline, schemes ou_0.5s,
+# coloured_2 and hold_0.2s) was stopped after REINFORCE, every one of whose 12 configurations
+# ended at the constant-torque reward with no success: its record is tuning_first_grid.json.
+LEARNING_RATES = (0.003, 0.01, 0.03)
 GRID = {
-    "reinforce": ("ou", "coloured", "hold"),
-    "gp_pg": ("ou", "coloured", "hold"),
-    "guided_variance": ("ou", "coloured", "hold"),
-    "guided_direction": ("hold_short", "hold", "hold_long"),  # white only: its choice is held
+    "reinforce": ("ou_0.5s", "hold_0.5s"),
+    "gp_pg": ("ou_0.5s", "hold_0.5s"),
+    "guided_variance": ("ou_0.5s", "hold_0.5s"),
+    "guided_direction": ("hold_0.2s", "hold_0.5s"),  # white only: its choice is held
 }
+FIXED = {"use_baseline": True}
 CONFIGS_PER_METHOD = 12
 ABLATION = {
-    "reinforce": ("white", "ou", "coloured", "hold"),
-    "gp_pg": ("white", "ou", "coloured", "hold"),
-    "guided_variance": ("white", "ou", "coloured", "hold"),
-    "guided_direction": ("white", "hold_short", "hold", "hold_long"),
+    "reinforce": ("white", "ou_0.5s", "coloured_2", "hold_0.5s"),
+    "gp_pg": ("white", "ou_0.5s", "coloured_2", "hold_0.5s"),
+    "guided_variance": ("white", "ou_0.5s", "coloured_2", "hold_0.5s"),
+    "guided_direction": ("white", "hold_0.2s", "hold_0.5s"),
 }
 DTYPE = "float32"
 
@@ -175,12 +180,11 @@ def tune(out: str, only=None) -> dict:
     rep["env_steps"] = S.budget(preset("reinforce"))
     for method in only or METHODS:
         field, amplitudes = AMPLITUDE[method]
-        lr0 = float(preset(method).learning_rate)
-        rates = [lr0 * f for f in LR_FACTORS]
+        rates = list(LEARNING_RATES)
         tried, t0 = [], time.perf_counter()
         for scheme in GRID[method]:
             for horizon in HORIZONS:
-                fixed = {field: amplitudes[-1], "discount_horizon": horizon}
+                fixed = {**FIXED, field: amplitudes[-1], "discount_horizon": horizon}
                 res = sweep.run_sweep("learning_rate", rates, method=method, preset="swingup",
                                       seeds=TUNING_SEEDS, progress=lambda m: None,
                                       overrides={**SCHEMES[scheme], **fixed, "dtype": DTYPE})
@@ -283,7 +287,7 @@ def report(out: str) -> str:
                 m, h = stats_lib.t_interval(y)
                 ax.plot(steps, m, label=f"{method} ({scheme})")
                 ax.fill_between(steps, m - h, m + h, alpha=0.2)
-    for scheme in ("ou", "coloured", "hold"):
+    for scheme in ("ou_0.5s", "coloured_2", "hold_0.5s"):
         a, b = f"guided_variance/{scheme}", f"gp_pg/{scheme}"
         if a in finals and b in finals:
             p = stats_lib.probability_of_improvement(finals[a], finals[b])
