@@ -14,7 +14,7 @@ SEEDS ?= 100
 SEED_START ?= 1000
 CONSISTENCY_SEEDS := $(shell seq $(SEED_START) $$(($(SEED_START) + 9)))
 
-.PHONY: run results figures swingup standard demo test lint bench docs clean-venv
+.PHONY: run results figures swingup standard exploration demo test lint bench docs clean-venv
 
 $(STAMP): pyproject.toml requirements.lock
 	python3 -m venv $(VENV)
@@ -75,6 +75,15 @@ standard: $(STAMP)
 	  $(PY) experiments/standard_tasks.py heldout --task $$t && \
 	  $(PY) experiments/standard_tasks.py report --task $$t || exit 1; \
 	done
+	$(PY) experiments/docs_tables.py --write
+
+# The exploration study on the swing-up preset: reach, tuning on seeds 100-101, then seeds
+# 1000-1019 with every scheme per method (it resumes: remove docs/results/exploration to start afresh).
+exploration: $(STAMP)
+	$(PY) experiments/exploration_study.py reach
+	$(PY) experiments/exploration_study.py tune
+	$(PY) experiments/exploration_study.py heldout
+	$(PY) experiments/exploration_study.py report
 	$(PY) experiments/docs_tables.py --write
 
 demo: $(STAMP)

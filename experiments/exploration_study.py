@@ -85,6 +85,10 @@ REACH_SCHEMES = {
     "hold 0.2 s": {"hold_time": 0.2},
     "hold 0.5 s": {"hold_time": 0.5},
 }
+# Every scheme sets both exploration fields, so that it replaces whatever the preset holds.
+SCHEME_BASE = {"exploration": "white", "hold_time": 0.0}
+SCHEMES = {k: {**SCHEME_BASE, **v} for k, v in SCHEMES.items()}
+REACH_SCHEMES = {k: {**SCHEME_BASE, **v} for k, v in REACH_SCHEMES.items()}
 # The exploration amplitude of each method: the fixed noise's initial sigma (N m), the guided
 # variance's variance where the GP knows nothing, the Gibbs candidates' spread (both (N m)^2).
 # The reach stage tries both; the tuning holds the larger (the smaller never rises above
@@ -247,7 +251,7 @@ def _curves(out: str, method: str, scheme: str):
         reward = np.asarray(f["eval_reward"][0], float)
     with open(os.path.join(out, "heldout.json")) as f:
         overrides = json.load(f)["runs"][f"{method}/{scheme}"]["overrides"]
-    steps = S.method_env_steps(preset(method, **overrides))
+    steps = S.method_env_steps(preset(method, **{**SCHEME_BASE, **overrides}))
     return steps, success, reward
 
 

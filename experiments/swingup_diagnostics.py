@@ -1,7 +1,8 @@
 """What limits the methods on the swing-up task: two diagnostics outside the tuning budget (seeds
 100-104, never reported as results; nothing is chosen from them).
 
-1. ``warm``: each of the four methods, with its tuned swing-up settings (or `--warm-lr`), starts
+1. ``warm``: each of the four methods, with its white-noise swing-up settings
+   (`swingup_study.white_noise_settings`; or `--warm-lr`), starts
    from the RBF
    controller fitted to the energy-pumping controller (`swingup.fit_controller`; it swings up from
    ~99% of start states when run deterministically) instead of from theta_c = 0. If the policy
@@ -33,6 +34,9 @@ import numpy as np
 from gpguided_jax import baselines, checkpoints, sharding, summaries, swingup
 from gpguided_jax import config as config_lib
 from gpguided_jax import train as train_lib
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from swingup_study import white_noise_settings  # noqa: E402
 
 SEEDS = (100, 101, 102, 103, 104)
 
@@ -107,11 +111,12 @@ def main(argv=None) -> int:
         with open(path) as f:
             report = json.load(f)
     report["seeds"] = list(SEEDS)
-    if "warm" in args.parts:
-        key = "warm_start" if args.warm_lr is None else f"warm_start_lr_{args.warm_lr:g}"
-        report[key] = warm_start(SEEDS, args.warm_lr)
-    if "sac" in args.parts:
-        report["sac_long_horizon"] = sac_long_horizon(SEEDS)
+    with white_noise_settings(os.path.join(args.out, "tuning.json")):  # the white-noise study's
+        if "warm" in args.parts:
+            key = "warm_start" if args.warm_lr is None else f"warm_start_lr_{args.warm_lr:g}"
+            report[key] = warm_start(SEEDS, args.warm_lr)
+        if "sac" in args.parts:
+            report["sac_long_horizon"] = sac_long_horizon(SEEDS)
     checkpoints.atomic_write_text(path, json.dumps(report, indent=2))
     print(json.dumps(report, indent=2))
     return 0

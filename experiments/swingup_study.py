@@ -15,7 +15,8 @@ Stages (each writes under --out, default docs/results/swingup):
           step. Writes tuning.json (every configuration tried, its score, the choice) and
           docs/tuning_swingup.md.
 ``heldout`` Held-out seeds (1000-1009): the four methods with `gpguided reproduce --preset swingup`
-          (which applies the tuned settings in `config.METHOD_PRESETS`), PPO and SAC per seed with
+          with this study's tuned settings (`white_noise_settings`: the preset's own, in
+          `config.METHOD_PRESETS`, are the exploration study's), PPO and SAC per seed with
           their tuned settings from tuning.json and the same environment-step budget. Writes
           heldout.npz (curves), heldout.json (per-seed steps to 50% / 90% success, wall times).
 ``gpfig``  What the GP sees on the swing-up task, early and late (Fig. 2/4 style), and whether
@@ -132,6 +133,22 @@ def _best(tried: list[dict]) -> dict:
 
 
 # ------------------------------------------------------------------------------------------ tune
+
+
+@contextlib.contextmanager
+def white_noise_settings(path: str = os.path.join("docs", "results", "swingup", "tuning.json")):
+    """The swing-up preset with this study's tuned settings (white noise, tuning.json) in place of
+    `config.METHOD_PRESETS['swingup']`, which holds the exploration study's
+    (experiments/exploration_study.py): the held-out runs, the GP figure and the diagnostics of
+    this study use these."""
+    with open(path) as f:
+        tuned = json.load(f)["methods"]
+    saved = config_lib.METHOD_PRESETS.get("swingup", {})
+    config_lib.METHOD_PRESETS["swingup"] = {m: dict(tuned[m]["chosen"]) for m in METHODS}
+    try:
+        yield
+    finally:
+        config_lib.METHOD_PRESETS["swingup"] = saved
 
 
 @contextlib.contextmanager
@@ -519,11 +536,12 @@ def main(argv=None) -> int:
             checkpoints.atomic_write_text(path, json.dumps(rep, indent=2))
         checkpoints.atomic_write_text(os.path.join("docs", "tuning_swingup.md"), tuning_markdown(rep))
     elif args.stage == "heldout":
-        with open(path) as f:
+        with open(path) as f, white_noise_settings(path):
             heldout(args.out, HELDOUT_SEEDS, json.load(f), args.dtype)
         print(report(args.out))
     elif args.stage == "gpfig":
-        gp_figure(args.out, HELDOUT_SEEDS[:3], args.dtype)
+        with white_noise_settings(path):
+            gp_figure(args.out, HELDOUT_SEEDS[:3], args.dtype)
     else:
         print(report(args.out))
     return 0

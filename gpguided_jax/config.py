@@ -416,12 +416,19 @@ PRESETS.update({
 # Per preset, per method: settings chosen by tuning one method at a time (applied after the
 # preset's own fields and before the caller's overrides).
 METHOD_PRESETS: dict[str, dict[str, dict]] = {
-    # experiments/swingup_study.py tune (seeds 100-101; docs/tuning_swingup.md)
+    # experiments/exploration_study.py tune (seeds 100-101; docs/exploration.md): correlated
+    # exploration or held actions at a larger amplitude, the baseline, the horizon in seconds.
+    # guided_variance keeps the age penalty of the white-noise tuning (docs/tuning_swingup.md).
     "swingup": {
-        "reinforce": {"learning_rate": 1.0},
-        "gp_pg": {"learning_rate": 1.0},
-        "guided_variance": {"learning_rate": 0.3, "age_penalty": 10.0},
-        "guided_direction": {"learning_rate": 0.1},
+        "reinforce": {"learning_rate": 0.03, "use_baseline": True, "init_log_std": math.log(4.0),
+                      "discount_horizon": 0.5, "hold_time": 0.5},
+        "gp_pg": {"learning_rate": 0.03, "use_baseline": True, "init_log_std": math.log(4.0),
+                  "discount_horizon": 0.5, "exploration": "ou", "noise_correlation_time": 0.5},
+        "guided_variance": {"learning_rate": 0.03, "use_baseline": True, "age_penalty": 10.0,
+                            "guided_variance_scale": 16.0, "discount_horizon": 2.0,
+                            "hold_time": 0.5},
+        "guided_direction": {"learning_rate": 0.03, "use_baseline": True, "candidate_scale": 16.0,
+                             "discount_horizon": 2.0, "hold_time": 0.2},
     },
     # experiments/standard_tasks.py tune (seeds 100-101; docs/standard_tasks.md); the horizon in
     # seconds

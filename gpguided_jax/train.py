@@ -32,7 +32,17 @@ import numpy as np
 import optax
 
 from gpguided_jax import controllers as controllers_lib
-from gpguided_jax import estimators, exploration, hyperfit, kernels, pendulum, policies, sparse_gp, swingup, tasks
+from gpguided_jax import (
+    estimators,
+    exploration,
+    hyperfit,
+    kernels,
+    pendulum,
+    policies,
+    sparse_gp,
+    swingup,
+    tasks,
+)
 from gpguided_jax.config import TrainConfig, control_interval, validate
 
 _POLICY_OF_METHOD = {
