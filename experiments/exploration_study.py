@@ -22,7 +22,7 @@ Stages (each writes under --out, default docs/results/exploration):
             length-scale fitted under each scheme.
 
 The baselines (brax PPO and SAC) are not re-tuned here; the swing-up study's held-out runs
-(experiments/swingup_study.py) hold their white-noise-era settings.
+(experiments/swingup_study.py) use the white-noise study's tuned settings.
 
 Usage:
   python experiments/exploration_study.py reach
@@ -227,16 +227,15 @@ def heldout(out: str, only=None) -> None:
         chosen = tuning["methods"][method]["chosen"]
         for scheme in ABLATION[method]:
             key = f"{method}/{scheme}"
-            if key in meta["runs"]:
-                continue
-            run_dir = os.path.join(out, "heldout", method, scheme)
             overrides = settings_of(chosen, scheme)
+            if meta["runs"].get(key, {}).get("overrides") == overrides:
+                continue  # done with these settings
+            run_dir = os.path.join(out, "heldout", method, scheme)
             t0 = time.perf_counter()
             reproduce.reproduce("swingup", HELDOUT_SEEDS, [method], run_dir, dtype=DTYPE,
                                 chunk_size=20, overrides=overrides, progress=log,
                                 gp_program="per_method")
-            meta["runs"][key] = dict(overrides=overrides, wall_s=time.perf_counter() - t0,
-                                     chosen=scheme == chosen["scheme"])
+            meta["runs"][key] = dict(overrides=overrides, wall_s=time.perf_counter() - t0)
             checkpoints.atomic_write_text(path, json.dumps(meta, indent=2))
             log(f"[heldout] {key}: {meta['runs'][key]['wall_s']:.0f}s")
 
@@ -267,6 +266,8 @@ def action_length_scale(out: str, method: str, scheme: str) -> float | None:
 def report(out: str) -> str:
     with open(os.path.join(out, "heldout.json")) as f:
         meta = json.load(f)
+    with open(os.path.join(out, "tuning.json")) as f:
+        chosen = {m: r["chosen"]["scheme"] for m, r in json.load(f)["methods"].items()}
     table = {"seeds": meta["seeds"], "rows": [], "guidance": []}
     finals = {}
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
@@ -274,7 +275,8 @@ def report(out: str) -> str:
         method, scheme = key.split("/")
         steps, success, reward = _curves(out, method, scheme)
         smooth = S.smoothed(success, method)
-        row = dict(method=method, scheme=scheme, chosen=run["chosen"], settings=run["overrides"],
+        is_chosen = scheme == chosen[method]
+        row = dict(method=method, scheme=scheme, chosen=is_chosen, settings=run["overrides"],
                    final_success=float(S.summaries.final_performance(success).mean()),
                    final_reward=float(S.summaries.final_performance(reward).mean()),
                    action_length_scale=action_length_scale(out, method, scheme),
@@ -286,7 +288,7 @@ def report(out: str) -> str:
                 seeds=int(np.isfinite(hit).sum()), median=med, ci=[lo, hi])
         table["rows"].append(row)
         finals[key] = S.summaries.final_performance(reward)
-        if run["chosen"]:
+        if is_chosen:
             for ax, y in zip(axes, (smooth, reward)):
                 m, h = stats_lib.t_interval(y)
                 ax.plot(steps, m, label=f"{method} ({scheme})")

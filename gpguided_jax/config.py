@@ -102,8 +102,9 @@ class TrainConfig:
       noise_correlation_time: tau of 'ou', seconds.
       noise_exponent: beta of 'coloured' (1 pink, 2 red), in [0, 3].
       hold_time: the policy decides every `hold_time` seconds (rounded to whole control steps)
-        and holds its action in between; the GP takes in the decision points only, and the
-        noise lives on them. 0 (default): every step. The deterministic evaluation
+        and holds its action in between; the noise lives on the decision points, and the GP
+        takes in decisions only, at least `gp_stride` steps apart (the hyperparameter fit takes
+        every step's pair). 0 (default): every step. The deterministic evaluation
         (`eval_episodes`) applies c(s) at every step.
 
     Traced fields (leaves; sweepable by vmap):
@@ -183,10 +184,8 @@ class TrainConfig:
 
     @property
     def hyperfit_episodes(self) -> int:
-        """Episodes of the initial policy that give `hyperfit_samples` pairs, one per decision."""
-        hold = 1 if self.hold_time <= 0 else exploration.hold_steps(self.hold_time,
-                                                                    control_interval(self))
-        return -(-self.hyperfit_samples // exploration.num_decisions(self.episode_length, hold))
+        """Episodes of the initial policy that give `hyperfit_samples` pairs, one per step."""
+        return -(-self.hyperfit_samples // self.episode_length)
 
     def static_dict(self) -> dict:
         return {f: getattr(self, f) for f in STATIC_FIELDS}

@@ -270,6 +270,12 @@ def run_episode(prog: Program, key, act, cfg: TrainConfig, num_steps: int, hold:
     return o, o_next, a, r, (alive if task.terminates else None), out
 
 
+def gp_spacing(gp_stride: int, hold: int) -> int:
+    """Steps between the pairs an episode gives the GP: the decisions (every `hold` steps) at
+    least `gp_stride` steps apart."""
+    return -(-gp_stride // hold) * hold
+
+
 def spread_decisions(values, hold: int, num_steps: int, fill: str = "zero"):
     """Per-decision values (D, ...) as per-step values (num_steps, ...): at the decision steps and
     0 in between (`fill='zero'`, for scores) or held (`fill='hold'`)."""
@@ -432,8 +438,9 @@ def _take_in(prog: Program, cfg: TrainConfig, state: TrainState, gp, ep: Episode
     static = prog.config
     fired, error_ratio = jnp.zeros((), jnp.int32), jnp.zeros((), prog.dtype)
     if static.uses_gp:
-        # every k-th decision of the episode joins the GP (gp_stride 1, no hold: every step)
-        k = static.gp_stride * prog.hold
+        # the decisions at least gp_stride steps apart join the GP (gp_stride 1, no hold: every
+        # step; with a hold longer than the stride, every decision)
+        k = gp_spacing(static.gp_stride, prog.hold)
         valid = None if ep.alive is None else ep.alive[::k]
         gp, fired, health = take_in_episode(
             gp, state.kernel, _features(prog, ep.states, ep.actions)[::k], returns[::k],
@@ -586,11 +593,11 @@ def collect_valid(prog: Program, key, cfg: TrainConfig):
     keys = jax.random.split(key, prog.config.hyperfit_episodes)
     eps = jax.vmap(lambda k: rollout(prog, k, theta, ctx, prog.behaviour, cfg))(keys)
     returns = jax.vmap(estimators.discounted_returns, in_axes=(0, None))(eps.rewards, cfg.discount)
-    h = prog.hold  # the pairs at the decision points
-    xs = jax.vmap(lambda s, a: _features(prog, s, a))(eps.states[:, ::h],
-                                                      eps.actions[:, ::h]).reshape(-1, d)
-    valid = None if eps.alive is None else eps.alive[:, ::h].reshape(-1)
-    return xs, returns[:, ::h].reshape(-1), valid
+    # every step's pair, held actions too (a held action's pair is its value for the rest of the
+    # hold): the fit sees the exploration's actions at the cost in episodes of white noise
+    xs = jax.vmap(lambda s, a: _features(prog, s, a))(eps.states, eps.actions).reshape(-1, d)
+    valid = None if eps.alive is None else eps.alive.reshape(-1)
+    return xs, returns.reshape(-1), valid
 
 
 def fit_subset(prog: Program, key, cfg: TrainConfig):

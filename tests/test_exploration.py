@@ -272,12 +272,19 @@ def test_rollout_scores_sit_at_decision_points_and_std_is_held(method, explorati
     assert any(np.any(leaf[~off] != 0) for leaf in leaves)
 
 
-def test_hyperfit_collects_decision_pairs_only():
+def test_hyperfit_takes_every_step_of_held_actions_and_the_gp_decisions_apart():
     cfg = _tiny(hold_time=0.015)
-    assert cfg.hyperfit_episodes == math.ceil(100 / 7)  # 7 decisions per 20-step episode
+    assert cfg.hyperfit_episodes == math.ceil(100 / 20)  # as without a hold
     prog = T.make_program(cfg)
     xs, ys, valid = T.collect_valid(prog, jax.random.PRNGKey(2), cfg)
-    assert xs.shape[0] == ys.shape[0] == cfg.hyperfit_episodes * 7 and valid is None
+    assert xs.shape == (cfg.hyperfit_episodes * 20, 4) and ys.shape[0] == xs.shape[0]
+    assert valid is None
+    actions = np.asarray(xs[:, -1]).reshape(cfg.hyperfit_episodes, 20)
+    assert np.all(actions[:, 1:3] == actions[:, :1])  # held for 3 steps
+    assert np.any(actions[:, 3] != actions[:, 0])
+    # the GP's pairs: decisions at least gp_stride steps apart
+    assert [T.gp_spacing(stride, hold) for stride, hold in
+            ((1, 1), (5, 1), (5, 3), (5, 5), (5, 100), (1, 3))] == [1, 5, 6, 5, 100, 3]
 
 
 def test_white_without_hold_is_the_paper_rollout():
