@@ -422,12 +422,12 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
         "reinforce": {"learning_rate": 0.03, "use_baseline": True, "init_log_std": math.log(4.0),
                       "discount_horizon": 0.5, "hold_time": 0.5},
         "gp_pg": {"learning_rate": 0.03, "use_baseline": True, "init_log_std": math.log(4.0),
-                  "discount_horizon": 0.5, "exploration": "ou", "noise_correlation_time": 0.5},
+                  "discount_horizon": 0.5, "hold_time": 0.5},
         "guided_variance": {"learning_rate": 0.03, "use_baseline": True, "age_penalty": 10.0,
-                            "guided_variance_scale": 16.0, "discount_horizon": 2.0,
+                            "guided_variance_scale": 16.0, "discount_horizon": 0.5,
                             "hold_time": 0.5},
         "guided_direction": {"learning_rate": 0.03, "use_baseline": True, "candidate_scale": 16.0,
-                             "discount_horizon": 2.0, "hold_time": 0.2},
+                             "discount_horizon": 0.5, "hold_time": 0.2},
     },
     # experiments/standard_tasks.py tune (seeds 100-101; docs/standard_tasks.md); the horizon in
     # seconds
