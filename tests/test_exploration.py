@@ -6,6 +6,7 @@ finite difference of the expected return with common random numbers; held action
 hand-written loop over the task's own step.
 """
 
+import functools
 import math
 
 import jax
@@ -251,13 +252,18 @@ def test_held_actions_step_the_task_as_a_hand_written_loop():
         np.testing.assert_allclose(np.asarray(o_next[t]), np.asarray(obs), rtol=1e-12)
 
 
+@functools.cache
+def _initial_state(method):
+    cfg = C.preset("tiny", method=method, hold_time=0.015)
+    return jax.jit(T.make_train(cfg).init)(jax.random.PRNGKey(0), cfg)
+
+
 @pytest.mark.parametrize("method", ["reinforce", "guided_variance"])
 @pytest.mark.parametrize("exploration", ["white", "ou"])
 def test_rollout_scores_sit_at_decision_points_and_std_is_held(method, exploration):
     cfg = C.preset("tiny", method=method, hold_time=0.015, exploration=exploration)
     prog = T.make_program(cfg)
-    train = T.make_train(cfg)
-    state = train.init(jax.random.PRNGKey(0), cfg)
+    state = _initial_state(method)  # the exploration does not change the initial state's shapes
     ctx = T.policy_context(cfg, state.gp, state.kernel)
     ep = T.rollout(prog, jax.random.PRNGKey(1), state.theta, ctx, prog.policy, cfg)
     actions, std = np.asarray(ep.actions), np.asarray(ep.exploration_std)
