@@ -441,7 +441,7 @@ def exploration_table() -> str:
                  "success reaches X, GP methods' hyperparameter-fit episodes included; the median "
                  "over all seeds with a bootstrap interval (∞ where more than half never get "
                  "there). Action length-scale: the fitted kernel's, median over seeds. Wall time: "
-                 "all seeds, compilation included, on a 2-core CPU shared with other runs. "
+                 "all seeds, compilation included, on a 2-core CPU at times shared with other runs. "
                  + _source(path))
     if d["guidance"]:
         lines += ["", "| exploration | P(guided_variance > gp_pg), final reward | 95% CI |",

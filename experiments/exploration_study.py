@@ -271,7 +271,9 @@ def report(out: str) -> str:
     table = {"seeds": meta["seeds"], "rows": [], "guidance": []}
     finals = {}
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for key, run in meta["runs"].items():
+    order = [f"{m}/{x}" for m in METHODS for x in ABLATION[m]]
+    for key in sorted(meta["runs"], key=order.index):
+        run = meta["runs"][key]
         method, scheme = key.split("/")
         steps, success, reward = _curves(out, method, scheme)
         smooth = S.smoothed(success, method)
