@@ -12,13 +12,12 @@
   that several tests compile (the same tiny preset, resumed runs, repeated CLI runs) is compiled
   once. The cache gives the same results bit for bit (`test_a_repeated_run_loads_its_programs_
   from_the_compile_cache`), and the tests never write to the user's own cache in ~/.cache.
-* Most tests spend most of their time compiling. The in-process tests compile with XLA's CPU
-  backend at optimisation level 0 (`LEVEL0_XLA_FLAGS`, set before JAX starts): LLVM runs its
-  cheaper passes on the same HLO program (the same fusions and order of operations) that a
-  user's run compiles, and the suite takes about a third less time. The tests that run an
-  experiment script, a notebook or the command line end to end at tiny sizes (plumbing: files,
-  shapes, finiteness, and runs that must agree with each other, all compiled alike) run it in a
-  subprocess that also uses XLA's older fusion emitters (`fast_compile_env`), faster still.
+* The tests that run an experiment script, a notebook or the command line end to end at tiny
+  sizes (plumbing: files, shapes, finiteness, and runs that must agree with each other, all
+  compiled alike) run it in a subprocess whose XLA CPU backend compiles at optimisation level 0
+  with XLA's older fusion emitters (`fast_compile_env`): they spend most of their time compiling,
+  and both make the compilation, and so these tests, markedly faster. The library's in-process
+  tests and the compile-cache test compile as a user's run does.
 * `make test` runs `--dist loadgroup`, so that the tests of one `xdist_group` share their
   session-scoped fixtures on one worker; where xdist's grouping was lost, the grouped tests fail
   saying so (`pytest_collection_modifyitems` below).
@@ -33,9 +32,6 @@ import tempfile
 _CACHE = os.path.join(tempfile.gettempdir(), "gpguided-tests-xla-"
                       + os.environ.get("PYTEST_XDIST_TESTRUNUID", str(os.getpid())))
 os.environ["GPGUIDED_COMPILE_CACHE"] = _CACHE  # before the CLI module reads it
-LEVEL0_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
-_USER_XLA_FLAGS = os.environ.get("XLA_FLAGS", "")
-os.environ["XLA_FLAGS"] = f"{_USER_XLA_FLAGS} {LEVEL0_XLA_FLAGS}".strip()  # before JAX starts
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
@@ -50,6 +46,7 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
 
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+LEVEL0_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
 # ... and XLA's older (non-MLIR) fusion emitters, which compile faster still than level 0 alone.
 # They round some fusions differently, so a script that compares two code paths of the library
 # to a tight tolerance compiles at level 0 alone (`fast_compile="level0"`).
@@ -72,7 +69,7 @@ def fast_compile_env(level0_only=False, **extra):
     flags, so programs compiled so are never loaded by a test that compiles with the defaults."""
     env = dict(os.environ, **extra)
     flags = LEVEL0_XLA_FLAGS if level0_only else _fast_compile_flags()
-    env["XLA_FLAGS"] = f"{extra.get('XLA_FLAGS', _USER_XLA_FLAGS)} {flags}".strip()
+    env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {flags}".strip()
     return env
 
 
@@ -85,7 +82,7 @@ def run_script(args, *, fast_compile=True, timeout=600, **env):
     if fast_compile:
         env = fast_compile_env(level0_only=fast_compile == "level0", **env)
     else:
-        env = dict(os.environ, **{"XLA_FLAGS": _USER_XLA_FLAGS, **env})
+        env = dict(os.environ, **env)
     proc = subprocess.run([sys.executable, *map(str, args)], cwd=ROOT, env=env, capture_output=True,
                           text=True, timeout=timeout)
     assert proc.returncode == 0, proc.stderr[-3000:]
