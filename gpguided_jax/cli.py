@@ -126,7 +126,8 @@ def _reproduce(args) -> int:
         overrides["discount_horizon"] = args.horizon
     for flag, field in (("exploration", "exploration"),
                         ("correlation_time", "noise_correlation_time"),
-                        ("noise_exponent", "noise_exponent"), ("hold_time", "hold_time")):
+                        ("noise_exponent", "noise_exponent"),
+                        ("resample_time", "noise_resample_time"), ("hold_time", "hold_time")):
         if getattr(args, flag) is not None:
             overrides[field] = getattr(args, flag)
     from gpguided_jax import config
@@ -294,13 +295,17 @@ def _add_reproduce(sub) -> None:
     rep.add_argument("--exploration", default=None, choices=list(NOISES),
                      help="exploration noise of the Gaussian policies (default: the preset's, "
                      "white for the paper): white (independent at each decision), ou "
-                     "(Ornstein-Uhlenbeck) or coloured (spectrum f^-beta); guided_direction "
+                     "(Ornstein-Uhlenbeck), coloured (spectrum f^-beta) or parameter (the "
+                     "controller's weights perturbed, for reinforce and gp_pg); guided_direction "
                      "takes white only")
     rep.add_argument("--correlation-time", type=float, default=None, metavar="SECONDS",
                      help="the OU noise's correlation time (default: the preset's, 0.5 s)")
     rep.add_argument("--noise-exponent", type=float, default=None, metavar="BETA",
                      help="the coloured noise's exponent beta in [0, 3] (default: the preset's, "
                      "1: pink)")
+    rep.add_argument("--resample-time", type=float, default=None, metavar="SECONDS",
+                     help="seconds between draws of the parameter noise (default: the "
+                     "preset's, 0: one draw per episode)")
     rep.add_argument("--hold-time", type=float, default=None, metavar="SECONDS",
                      help="decide every SECONDS and hold the action in between (default: the "
                      "preset's, 0: every control step)")

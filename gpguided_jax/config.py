@@ -52,6 +52,7 @@ STATIC_FIELDS = (
     "exploration",
     "noise_correlation_time",
     "noise_exponent",
+    "noise_resample_time",
     "hold_time",
 )
 
@@ -97,10 +98,15 @@ class TrainConfig:
         (`gpguided_jax.tasks`; one continuous action).
       exploration: the exploration noise of the Gaussian policies (`gpguided_jax.exploration`):
         'white' (the paper: independent at every decision), 'ou' (Ornstein-Uhlenbeck with
-        correlation time `noise_correlation_time`) or 'coloured' (spectrum f^-`noise_exponent`).
-        guided_direction draws its candidates afresh at each decision and takes 'white' only.
+        correlation time `noise_correlation_time`), 'coloured' (spectrum f^-`noise_exponent`)
+        or 'parameter' (the controller's weights perturbed by (sigma / u_max) eps, eps ~ N(0, I)
+        drawn every `noise_resample_time` seconds: state-dependent exploration; REINFORCE and
+        gp_pg only). guided_direction draws its candidates afresh at each decision and takes
+        'white' only.
       noise_correlation_time: tau of 'ou', seconds.
       noise_exponent: beta of 'coloured' (1 pink, 2 red), in [0, 3].
+      noise_resample_time: seconds between draws of 'parameter' noise; 0 (default): one draw per
+        episode.
       hold_time: the policy decides every `hold_time` seconds (rounded to whole control steps)
         and holds its action in between; the noise lives on the decision points, and the GP
         takes in decisions only, at least `gp_stride` steps apart (the hyperparameter fit takes
@@ -155,6 +161,7 @@ class TrainConfig:
     exploration: str = "white"
     noise_correlation_time: float = 0.5
     noise_exponent: float = 1.0
+    noise_resample_time: float = 0.0
     hold_time: float = 0.0
     # traced
     learning_rate: Any = 2e-4
@@ -255,8 +262,12 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     if cfg.method == "guided_direction" and cfg.exploration != "white":
         _fail("exploration", "guided_direction draws its candidates afresh at each decision, so "
               f"it takes 'white' only (hold its choice with hold_time), got {cfg.exploration!r}")
+    if cfg.exploration == "parameter" and cfg.method not in ("reinforce", "gp_pg"):
+        _fail("exploration", "'parameter' noise perturbs the fixed-noise policy's controller, so "
+              f"it is for reinforce and gp_pg only, got method {cfg.method!r}")
     for f, ok, what in (("noise_correlation_time", lambda v: v > 0, "> 0 seconds"),
                         ("noise_exponent", lambda v: 0 <= v <= 3, "in [0, 3]"),
+                        ("noise_resample_time", lambda v: v >= 0, ">= 0 seconds"),
                         ("hold_time", lambda v: v >= 0, ">= 0 seconds")):
         v = getattr(cfg, f)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \

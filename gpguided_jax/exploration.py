@@ -34,6 +34,19 @@ is the gradient of the joint density, so a REINFORCE estimate with returns-to-go
 Held actions (`hold_steps`) are a separate choice: the policy decides every k-th step and the
 action is held in between; the noise processes above then live on the decision points, with
 dt replaced by k dt.
+
+``parameter`` is state-dependent exploration in the controller's parameters (Rueckstiess et al.
+2008; Raffin et al.'s gSDE; per episode, the parameter noise of PGPE and Plappert et al.): the
+controller c(s; theta_c) = u_max tanh(<theta_c, psi(s)>) acts with perturbed weights
+theta_c + (sigma / u_max) eps_j, i.e. the pre-activation noise (sigma / u_max) <eps_j, psi(s)>,
+where eps_j ~ N(0, I) is drawn afresh every `block` decisions (once per episode by default).
+Given the states the actions are a deterministic function of the perturbed weights, whose
+density is Gaussian, so the score of block j (`parameter_scores`) is
+
+  d/dtheta_c = eps_j u_max / sigma,   d/dlog sigma = |eps_j|^2 - d,
+
+d the number of weights; it sits at the block's first decision, and each has zero mean given the
+past, so REINFORCE with returns-to-go from that decision stays unbiased.
 """
 
 from __future__ import annotations
@@ -48,18 +61,22 @@ import numpy as np
 
 from gpguided_jax import _random
 
-NOISES = ("white", "ou", "coloured")
+NOISES = ("white", "ou", "coloured", "parameter")
+# the processes of the action noise eps_t (a Gaussian policy a_t = m_t + s_t eps_t)
+ACTION_NOISES = ("white", "ou", "coloured")
 
 
 class NoiseProcess(NamedTuple):
-    """A unit-variance stationary Gaussian noise over `length` decision points (static).
+    """A unit-variance stationary Gaussian noise over `length` decision points (static), or the
+    controller's parameter noise ('parameter').
 
     Attributes:
-      name: 'white', 'ou' or 'coloured'.
+      name: 'white', 'ou', 'coloured' or 'parameter'.
       length: D, the decision points per episode.
       rho: the AR(1) coefficient exp(-dt / tau) ('ou'; 0 otherwise).
       cholesky: (D, D) L with C = L L^T ('coloured'; None otherwise), float64 NumPy.
       whitener: (D, D) W = L^-1 ('coloured'; None otherwise), float64 NumPy.
+      block: decisions per draw of the parameter noise ('parameter'; 0 otherwise).
     """
 
     name: str
@@ -67,9 +84,18 @@ class NoiseProcess(NamedTuple):
     rho: float = 0.0
     cholesky: np.ndarray | None = None
     whitener: np.ndarray | None = None
+    block: int = 0
+
+    @property
+    def num_blocks(self) -> int:
+        """Draws of the parameter noise per episode ('parameter')."""
+        return -(-self.length // self.block)
 
     def correlation(self) -> np.ndarray:
         """(D, D) the correlation matrix C of the process (float64, for tests and figures)."""
+        if self.name == "parameter":
+            raise ValueError("parameter noise has no action-noise correlation of its own: it "
+                             "depends on the visited states")
         d = self.length
         if self.name == "white":
             return np.eye(d)
@@ -149,18 +175,26 @@ def power_law_autocovariance(length: int, exponent: float) -> np.ndarray:
 
 @functools.lru_cache(maxsize=32)
 def make_noise(name: str, length: int, dt: float, correlation_time: float = 0.5,
-               exponent: float = 1.0) -> NoiseProcess:
+               exponent: float = 1.0, resample_time: float = 0.0) -> NoiseProcess:
     """The noise process `name` over `length` decision points `dt` seconds apart.
 
     Args:
-      name: 'white', 'ou' or 'coloured'.
+      name: 'white', 'ou', 'coloured' or 'parameter'.
       length: D, decision points per episode.
       dt: seconds between decision points (the control interval times the hold).
       correlation_time: tau of 'ou', seconds.
       exponent: beta of 'coloured' (0 white, 1 pink, 2 red).
+      resample_time: seconds between draws of 'parameter' (rounded to whole decisions, at least
+        one); 0 or more than an episode: one draw per episode.
     """
     if name == "white":
         return NoiseProcess("white", length)
+    if name == "parameter":
+        if not resample_time >= 0:
+            raise ValueError(f"the parameter noise's resample time must be >= 0 seconds, got "
+                             f"{resample_time}")
+        block = length if resample_time == 0 else min(length, max(1, round(resample_time / dt)))
+        return NoiseProcess("parameter", length, block=block)
     if name == "ou":
         if not correlation_time > 0:
             raise ValueError(f"the OU correlation time must be > 0 seconds, got {correlation_time}")
@@ -208,3 +242,48 @@ def log_density(noise: NoiseProcess, eps, std):
     d = eps.shape[0]
     return (-0.5 * z @ z - jnp.sum(jnp.log(jnp.diagonal(chol))) - jnp.sum(jnp.log(std))
             - 0.5 * d * math.log(2 * math.pi))
+
+
+def sample_parameter_noise(noise: NoiseProcess, key, like):
+    """eps: standard normal draws shaped like the pytree `like` with a leading (num_blocks,) axis."""
+    leaves, treedef = jax.tree_util.tree_flatten(like)
+    keys = jax.random.split(key, len(leaves))
+    return jax.tree_util.tree_unflatten(treedef, [
+        _random.normal(k, (noise.num_blocks,) + jnp.shape(x), jnp.result_type(x))
+        for k, x in zip(keys, leaves)])
+
+
+def perturbed_parameters(params, eps_block, scale):
+    """theta_c + scale * eps_j for one block's draw `eps_block` (a pytree like params)."""
+    return jax.tree_util.tree_map(lambda w, e: w + scale * e, params, eps_block)
+
+
+def parameter_scores(noise: NoiseProcess, eps, std, u_max: float):
+    """Per-decision scores of the parameter noise: at each block's first decision
+    (eps_j u_max / sigma, |eps_j|^2 - d), 0 at the other decisions (module notes).
+
+    Args:
+      noise: the 'parameter' process.
+      eps: pytree of (num_blocks, ...) draws (`sample_parameter_noise`).
+      std: () sigma, so that the weights move by sigma / u_max per unit of eps.
+      u_max: the controller's torque limit.
+
+    Returns:
+      (controller scores, a pytree like eps with a leading (D,) axis of decisions; log-sigma
+      scores (D,)).
+    """
+    d = noise.length
+    block_of = np.arange(d) // noise.block
+    first = jnp.asarray(np.arange(d) % noise.block == 0)
+
+    def at_decisions(per_block):
+        per_decision = per_block[block_of]
+        mask = first.reshape((-1,) + (1,) * (per_block.ndim - 1))
+        return jnp.where(mask, per_decision, jnp.zeros_like(per_decision))
+
+    leaves = jax.tree_util.tree_leaves(eps)
+    num_weights = sum(int(np.prod(x.shape[1:])) for x in leaves)
+    sq = sum(jnp.sum(x.reshape(x.shape[0], -1) ** 2, axis=1) for x in leaves)
+    controller = jax.tree_util.tree_map(lambda e: at_decisions(e * (u_max / std)), eps)
+    return controller, at_decisions(sq - num_weights)
+

@@ -191,7 +191,8 @@ def make_program(cfg: TrainConfig) -> Program:
     hold = exploration.hold_steps(cfg.hold_time, dt)
     noise = exploration.make_noise(
         cfg.exploration, exploration.num_decisions(cfg.episode_length, hold), hold * dt,
-        correlation_time=cfg.noise_correlation_time, exponent=cfg.noise_exponent)
+        correlation_time=cfg.noise_correlation_time, exponent=cfg.noise_exponent,
+        resample_time=cfg.noise_resample_time)
     return Program(cfg, controller, policy, policies.make_policy("fixed_noise", controller), task,
                    hold, noise)
 
@@ -298,6 +299,29 @@ def rollout(prog: Program, key, theta, ctx, policy, cfg: TrainConfig) -> Episode
             return a, (score, std)
 
         o, o_next, a, r, alive, (scores, std) = run_episode(prog, key, act, cfg, length, hold)
+    elif noise.name == "parameter":
+        # the controller's weights perturbed by a draw per block of decisions, its score at the
+        # block's first decision (`exploration.parameter_scores`)
+        controller, u_max = prog.controller, prog.controller.u_max
+        std_p = jnp.exp(theta.log_std)
+        eps = exploration.sample_parameter_noise(noise, jax.random.fold_in(key, 1),
+                                                 theta.controller)
+        scale = std_p / u_max
+        blocks = jnp.arange(noise.length) // noise.block
+
+        def act(k, obs, j):
+            del k
+            draw = jax.tree_util.tree_map(lambda e: e[j], eps)
+            a = controller.apply(exploration.perturbed_parameters(theta.controller, draw, scale),
+                                 obs)
+            # the action's standard deviation at this state, to first order in the noise
+            _, grad = controller.value_and_grad(theta.controller, obs)
+            sq = sum(jnp.sum(g * g) for g in jax.tree_util.tree_leaves(grad))
+            return a, scale * jnp.sqrt(sq)
+
+        o, o_next, a, r, alive, std = run_episode(prog, key, act, cfg, length, hold, xs=blocks)
+        j_c, j_log_std = exploration.parameter_scores(noise, eps, std_p, u_max)
+        scores = policies.PolicyParams(controller=j_c, log_std=j_log_std)
     else:
         # correlated noise: drawn for the whole episode, then each decision's score from the
         # policy's Gaussian parts (`exploration.correlated_scores`)

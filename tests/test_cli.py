@@ -80,6 +80,9 @@ def test_bad_arguments_are_refused_in_one_line(args, message, capsys):
     (["--exploration", "coloured", "--noise-exponent", "4"], "noise_exponent: must be in [0, 3]"),
     (["--hold-time", "-0.1"], "hold_time: must be >= 0 seconds"),
     (["--exploration", "ou", "--correlation-time", "0"], "noise_correlation_time: must be > 0"),
+    (["--exploration", "parameter", "--methods", "guided_variance"], "reinforce and gp_pg only"),
+    (["--exploration", "parameter", "--resample-time", "-1"],
+     "noise_resample_time: must be >= 0 seconds"),
 ])
 def test_bad_exploration_is_refused_in_one_line(args, message):
     with pytest.raises(SystemExit) as exc:
@@ -96,6 +99,9 @@ def test_exploration_flags_reach_the_config(monkeypatch):
               "--exploration", "ou", "--correlation-time", "0.2", "--hold-time", "0.01"])
     assert seen["overrides"] == {"exploration": "ou", "noise_correlation_time": 0.2,
                                  "hold_time": 0.01}
+    cli.main(["reproduce", "--preset", "tiny", "--methods", "gp_pg", "--compile-cache", "none",
+              "--exploration", "parameter", "--resample-time", "0.25"])
+    assert seen["overrides"] == {"exploration": "parameter", "noise_resample_time": 0.25}
 
 
 def test_import_does_not_touch_the_x64_flag():

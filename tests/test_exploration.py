@@ -205,6 +205,108 @@ def test_reinforce_with_correlated_scores_matches_a_finite_difference(name, kw):
 
 
 # ------------------------------------------------------------------------------------------------
+# parameter noise: the scores against autodiff, REINFORCE against a finite difference
+# ------------------------------------------------------------------------------------------------
+
+
+def test_parameter_noise_blocks():
+    assert X.make_noise("parameter", 20, DT).block == 20  # one draw per episode
+    assert X.make_noise("parameter", 20, DT, resample_time=0.03).block == 6
+    assert X.make_noise("parameter", 20, DT, resample_time=0.03).num_blocks == 4
+    assert X.make_noise("parameter", 20, DT, resample_time=1e-4).block == 1
+    assert X.make_noise("parameter", 20, DT, resample_time=10.0).num_blocks == 1
+    with pytest.raises(ValueError, match="resample time"):
+        X.make_noise("parameter", 20, DT, resample_time=-1.0)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_parameter_scores_are_the_gradients_of_the_weights_log_density(dtype):
+    """Given the visited states the actions are a function of the perturbed weights theta', so
+    the episode's log-likelihood is that of theta' ~ N(theta, (sigma / u_max)^2 I) per block;
+    its gradient (jax.grad of scipy's normal density) against the summed scores."""
+    noise = X.make_noise("parameter", 20, DT, resample_time=0.03)  # 4 blocks of 6, 6, 6, 2
+    u_max, log_std = 5.0, jnp.asarray(0.3, dtype)
+    rng = np.random.default_rng(3)
+    theta = {"w": jnp.asarray(rng.normal(size=7), dtype), "b": jnp.asarray(0.4, dtype)}
+    eps = X.sample_parameter_noise(noise, jax.random.PRNGKey(2), theta)
+    assert eps["w"].shape == (4, 7) and eps["b"].shape == (4,) and eps["w"].dtype == dtype
+    scale = jnp.exp(log_std) / u_max
+    perturbed = jax.tree_util.tree_map(
+        lambda w, e: (w + scale * e).astype(jnp.float64), theta, eps)
+
+    def log_p(params, ls):
+        s = jnp.exp(ls) / u_max
+        return sum(jnp.sum(jax.scipy.stats.norm.logpdf(perturbed[k], params[k], s))
+                   for k in ("w", "b"))
+
+    params64 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float64), theta)
+    want_c, want_s = jax.grad(log_p, argnums=(0, 1))(params64, jnp.float64(log_std))
+    got_c, got_s = X.parameter_scores(noise, eps, jnp.exp(log_std), u_max)
+    assert got_c["w"].shape == (20, 7) and got_s.shape == (20,)
+    first = np.arange(20) % 6 == 0
+    assert np.all(np.asarray(got_s)[~first] == 0) and np.all(np.asarray(got_c["w"])[~first] == 0)
+    rtol = 1e-10 if dtype == "float64" else 1e-4
+    for k in ("w", "b"):
+        np.testing.assert_allclose(np.asarray(got_c[k], np.float64).sum(0), want_c[k],
+                                   rtol=rtol, atol=rtol)
+    np.testing.assert_allclose(float(np.asarray(got_s, np.float64).sum()), float(want_s),
+                               rtol=rtol, atol=rtol)
+
+
+def test_reinforce_with_parameter_noise_matches_a_finite_difference():
+    """The linear system of `_linear_problem` with a = (k + sigma eps_j) . (1, x_t), eps_j drawn
+    every 5 of 20 steps (u_max = 1): the REINFORCE estimate with each block's score times the
+    return-to-go from its first step, against central differences with common random numbers.
+    The per-step Gaussian score of the actions' marginal N(m_t, sigma^2 |(1, x_t)|^2), the
+    likelihood that ignores the noise's persistence, is biased."""
+    d, n = 20, 200_000
+    noise = X.make_noise("parameter", d, DT, resample_time=5 * DT)
+    params = jnp.asarray([0.5, -0.3, math.log(0.3)])
+    keys = jax.random.split(jax.random.PRNGKey(12), n)
+    like = jnp.zeros(2)
+    block_of = jnp.arange(d) // noise.block
+
+    def episode(p, eps):
+        k, std = p[:2], jnp.exp(p[2])
+
+        def step(x, e):
+            feat = jnp.stack([jnp.ones_like(x), x])
+            a = (k + std * e) @ feat
+            x_new = 0.9 * x + 0.2 * a
+            return x_new, (x, a, k @ feat, std * jnp.sqrt(feat @ feat), -(x_new - 1.0) ** 2)
+
+        return jax.lax.scan(step, jnp.zeros(()), eps[block_of])[1]
+
+    def estimates(key):
+        eps = X.sample_parameter_noise(noise, key, like)
+        xs, a, m, s, rewards = episode(params, eps)
+        to_go = jnp.cumsum(rewards[::-1])[::-1]
+        j_c, j_s = X.parameter_scores(noise, eps, jnp.exp(params[2]), 1.0)
+        scores = jnp.concatenate([j_c, j_s[:, None]], axis=1)
+        # the marginal's score: d/dk of log N(a; m, s^2) and d/dlog sigma
+        z = (a - m) / s
+        feat = jnp.stack([jnp.ones(d), xs], axis=1)
+        marginal = jnp.concatenate([z[:, None] * feat / s[:, None], (z * z - 1.0)[:, None]],
+                                   axis=1)
+        return (scores * to_go[:, None]).sum(0), (marginal * to_go[:, None]).sum(0)
+
+    exact, marginal = jax.jit(jax.vmap(estimates))(keys)
+    eps_all = jax.vmap(lambda k: X.sample_parameter_noise(noise, k, like))(keys)
+
+    def expected_return(p):
+        return jnp.mean(jax.vmap(lambda e: episode(p, e)[-1].sum())(eps_all))
+
+    h = 1e-4
+    fd = np.array([(expected_return(params.at[i].add(h)) - expected_return(params.at[i].add(-h)))
+                   / (2 * h) for i in range(3)])
+    z = np.abs(np.asarray(exact.mean(0)) - fd) / (np.asarray(exact.std(0)) / math.sqrt(n))
+    assert np.all(z < 4.5), (np.asarray(exact.mean(0)), fd, z)
+    z_marg = np.abs(np.asarray(marginal.mean(0)) - fd) / (np.asarray(marginal.std(0))
+                                                        / math.sqrt(n))
+    assert np.max(z_marg) > 10, z_marg
+
+
+# ------------------------------------------------------------------------------------------------
 # held actions and the training loop
 # ------------------------------------------------------------------------------------------------
 
@@ -278,6 +380,35 @@ def test_rollout_scores_sit_at_decision_points_and_std_is_held(method, explorati
     assert any(np.any(leaf[~off] != 0) for leaf in leaves)
 
 
+def test_parameter_noise_rollout_acts_with_the_perturbed_controller():
+    """Held for 3 steps, a draw every 3 decisions: each decision's action is the controller's with
+    that block's perturbed weights at the observed state, the scores sit at the blocks' first
+    decisions, and the learnable sigma moves the actions."""
+    cfg = C.preset("tiny", method="reinforce", hold_time=0.015, exploration="parameter",
+                   noise_resample_time=0.045)
+    prog = T.make_program(cfg)
+    assert prog.hold == 3 and prog.noise.length == 7 and prog.noise.block == 3
+    state = _initial_state("reinforce")
+    theta, ctx = state.theta, T.policy_context(cfg, state.gp, state.kernel)
+    key = jax.random.PRNGKey(6)
+    ep = T.rollout(prog, key, theta, ctx, prog.policy, cfg)
+    eps = X.sample_parameter_noise(prog.noise, jax.random.fold_in(key, 1), theta.controller)
+    scale = float(jnp.exp(theta.log_std)) / prog.controller.u_max
+    for t in range(20):
+        j = (t // 3) // 3
+        w = jax.tree_util.tree_map(lambda c, e: c + scale * e[j], theta.controller, eps)
+        np.testing.assert_allclose(float(ep.actions[t]),
+                                   float(prog.controller.apply(w, ep.states[t - t % 3])),
+                                   rtol=1e-12)
+    starts = np.zeros(20, bool)
+    starts[[0, 9, 18]] = True
+    leaves = [np.asarray(leaf) for leaf in jax.tree_util.tree_leaves(ep.scores)]
+    assert all(np.all(leaf[~starts] == 0) and np.all(leaf[starts] != 0) for leaf in leaves)
+    wider = theta._replace(log_std=theta.log_std + 1.0)
+    ep2 = T.rollout(prog, key, wider, ctx, prog.policy, cfg)
+    assert not np.allclose(np.asarray(ep.actions), np.asarray(ep2.actions))
+
+
 def test_hyperfit_takes_every_step_of_held_actions_and_the_gp_decisions_apart():
     cfg = _tiny(hold_time=0.015)
     assert cfg.hyperfit_episodes == math.ceil(100 / 20)  # as without a hold
@@ -327,6 +458,8 @@ def test_white_without_hold_is_the_paper_rollout():
     (dict(noise_exponent=-1.0), "noise_exponent"),
     (dict(hold_time=-0.1), "hold_time"),
     (dict(hold_time=float("nan")), "hold_time"),
+    (dict(method="guided_variance", exploration="parameter"), "reinforce and gp_pg only"),
+    (dict(exploration="parameter", noise_resample_time=-0.5), "noise_resample_time"),
 ])
 def test_bad_exploration_settings_are_refused_naming_the_field(fields, word):
     with pytest.raises(ValueError) as e:
