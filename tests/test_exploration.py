@@ -396,7 +396,7 @@ def test_parameter_noise_rollout_acts_with_the_perturbed_controller():
     scale = float(jnp.exp(theta.log_std)) / prog.controller.u_max
     for t in range(20):
         j = (t // 3) // 3
-        w = jax.tree_util.tree_map(lambda c, e: c + scale * e[j], theta.controller, eps)
+        w = jax.tree_util.tree_map(lambda c, e, j=j: c + scale * e[j], theta.controller, eps)
         np.testing.assert_allclose(float(ep.actions[t]),
                                    float(prog.controller.apply(w, ep.states[t - t % 3])),
                                    rtol=1e-12)
