@@ -72,6 +72,9 @@ SCHEMES = {
     "hold_0.05s": {"hold_time": 0.05},
     "hold_0.2s": {"hold_time": 0.2},
     "hold_0.5s": {"hold_time": 0.5},
+    "parameter_episode": {"exploration": "parameter"},
+    "parameter_0.5s": {"exploration": "parameter", "noise_resample_time": 0.5},
+    "parameter_0.2s": {"exploration": "parameter", "noise_resample_time": 0.2},
 }
 REACH_SCHEMES = {
     "white": {},
@@ -84,6 +87,10 @@ REACH_SCHEMES = {
     "hold 0.05 s": {"hold_time": 0.05},
     "hold 0.2 s": {"hold_time": 0.2},
     "hold 0.5 s": {"hold_time": 0.5},
+    # the controller's weights perturbed (reinforce and gp_pg only): per episode, or redrawn
+    "parameter, per episode": {"exploration": "parameter"},
+    "parameter 0.5 s": {"exploration": "parameter", "noise_resample_time": 0.5},
+    "parameter 0.2 s": {"exploration": "parameter", "noise_resample_time": 0.2},
 }
 # Every scheme sets both exploration fields, so that it replaces whatever the preset holds.
 SCHEME_BASE = {"exploration": "white", "hold_time": 0.0}
@@ -114,9 +121,13 @@ GRID = {
 }
 FIXED = {"use_baseline": True}
 CONFIGS_PER_METHOD = 12
+# The parameter-noise schemes (reinforce and gp_pg only) were added to the ablation after the
+# tuning above, at each method's chosen learning rate, horizon and amplitude.
 ABLATION = {
-    "reinforce": ("white", "ou_0.5s", "coloured_2", "hold_0.5s"),
-    "gp_pg": ("white", "ou_0.5s", "coloured_2", "hold_0.5s"),
+    "reinforce": ("white", "ou_0.5s", "coloured_2", "hold_0.5s", "parameter_episode",
+                  "parameter_0.5s", "parameter_0.2s"),
+    "gp_pg": ("white", "ou_0.5s", "coloured_2", "hold_0.5s", "parameter_episode",
+              "parameter_0.5s", "parameter_0.2s"),
     "guided_variance": ("white", "ou_0.5s", "coloured_2", "hold_0.5s"),
     "guided_direction": ("white", "hold_0.2s", "hold_0.5s"),
 }
@@ -136,14 +147,25 @@ def preset(method: str, **overrides) -> config_lib.TrainConfig:
 
 def reach(out: str) -> dict:
     """Share of the initial policy's episodes above horizontal / near upright, per method, scheme
-    and amplitude."""
+    and amplitude. The rows of an earlier reach.json are kept, and only the missing ones run."""
+    path = os.path.join(out, "reach.json")
+    done = {}
+    if os.path.exists(path):
+        with open(path) as f:
+            done = {(r["method"], r["scheme"], r[AMPLITUDE[r["method"]][0]]): r
+                    for r in json.load(f)["rows"]}
     rows = []
     for method in METHODS:
         field, amplitudes = AMPLITUDE[method]
         for name, scheme in REACH_SCHEMES.items():
-            if method == "guided_direction" and scheme.get("exploration"):
-                continue
+            if method == "guided_direction" and scheme["exploration"] != "white":
+                continue  # its candidates are drawn afresh at each decision
+            if scheme["exploration"] == "parameter" and method not in ("reinforce", "gp_pg"):
+                continue  # parameter noise perturbs the fixed-noise policy's controller
             for amp in amplitudes:
+                if (method, name, amp) in done:
+                    rows.append(done[(method, name, amp)])
+                    continue
                 cfg = preset(method, **scheme, **{field: amp})
                 above, upright = _reach_one(cfg)
                 rows.append(dict(method=method, scheme=name, **{field: amp},
@@ -151,7 +173,7 @@ def reach(out: str) -> dict:
                 log(f"[reach] {method} {name} {field}={amp:.3g}: above {above:.2f}, "
                     f"upright {upright:.2f}")
     res = {"seeds": list(REACH_SEEDS), "episodes_per_seed": REACH_EPISODES, "rows": rows}
-    checkpoints.atomic_write_text(os.path.join(out, "reach.json"), json.dumps(res, indent=2))
+    checkpoints.atomic_write_text(path, json.dumps(res, indent=2))
     return res
 
 

@@ -278,7 +278,103 @@ def train_on_task(algorithm: str, env: str, num_timesteps: int, episode_length: 
     return TaskResult(np.asarray(steps), np.asarray(returns), wall)
 
 
-# The success criterion and its rates live in `swingup`; kept here under their old names.
+def preset_settings(preset: str, algorithm: str, dt: float) -> dict:
+    """The trainer's keyword arguments of `algorithm` as tuned for `preset`
+    (`config.BASELINE_PRESETS`; none for a preset without a tuning): a 'horizon' in seconds
+    becomes brax's `discounting` at `dt` seconds per step."""
+    from gpguided_jax import config, tasks
+
+    settings = dict(config.BASELINE_PRESETS.get(preset, {}).get(algorithm, {}))
+    if "horizon" in settings:
+        settings["discounting"] = tasks.discount_for_horizon(settings.pop("horizon"), dt)
+    return settings
+
+
+def summarise_returns(env_steps: np.ndarray, returns: np.ndarray, threshold: float | None) -> dict:
+    """Final return and steps to the threshold of baseline runs, as `summary.csv` gives them for
+    the methods.
+
+    Args:
+      env_steps: (E,) environment steps of the evaluations; the first evaluates the initial policy
+        and is left out.
+      returns: (seeds, E) deterministic evaluation returns.
+      threshold: the task's solved-at return (None: no steps to threshold).
+
+    Returns:
+      final_return_iqm with its stratified-bootstrap ci95 over seeds (the final return of a seed:
+      the mean over its last 10% of evaluations), final_return_mean, and per seed the environment
+      steps at which its evaluation first reached the threshold (None if never).
+    """
+    from gpguided_jax import stats, summaries
+
+    steps, ret = np.asarray(env_steps)[1:], np.asarray(returns, float)[:, 1:]
+    final = summaries.final_performance(ret)
+    lo, hi = stats.bootstrap_ci(final)
+    out = dict(seeds=int(ret.shape[0]), final_return_iqm=stats.iqm(final), ci95=[lo, hi],
+               final_return_mean=float(final.mean()), threshold=threshold)
+    if threshold is not None:
+        hit = ret >= threshold
+        out["steps_to_threshold"] = [int(steps[h.argmax()]) if h.any() else None for h in hit]
+    return out
+
+
+def run_preset(algorithm: str, preset: str, seeds, *, env: str | None = None,
+               num_timesteps: int | None = None, num_evals: int = 26,
+               hidden_layers: tuple = HIDDEN_LAYERS, overrides: dict | None = None,
+               progress=None) -> dict:
+    """brax's `algorithm` on a standard task with a preset's budget and tuned settings, one run
+    per seed (`gpguided baseline`).
+
+    Args:
+      algorithm: 'ppo' or 'sac'.
+      preset: a preset of `config.PRESETS`; its environment, episode length and budget of
+        environment steps (updates x episodes x episode length) apply, and its tuned settings
+        (`preset_settings`).
+      seeds: the trainer's seeds.
+      env: another task than the preset's ('gymnax:<id>' or 'brax:<name>').
+      num_timesteps: another budget of environment steps.
+      num_evals: evaluations, the initial policy's included.
+      hidden_layers: hidden sizes of every MLP.
+      overrides: further trainer arguments, over the tuned ones.
+      progress: called with a line after each seed.
+
+    Returns:
+      A dict: algorithm, preset, env, settings, num_timesteps, seeds, env_steps (E,), returns
+      (seeds, E), wall_s per seed, and `summarise_returns`' summary.
+    """
+    from gpguided_jax import config, tasks
+
+    if algorithm not in ("ppo", "sac"):
+        raise ValueError(f"unknown baseline {algorithm!r}; choose 'ppo' or 'sac'")
+    if num_evals < 2:
+        raise ValueError(f"num_evals must be >= 2, got {num_evals}")
+    # the preset's task and budget only (the baselines run in float32)
+    cfg = config.preset(preset, dtype="float32", **({"env": env} if env else {}))
+    if not cfg.env.startswith(("gymnax:", "brax:")):
+        raise ValueError(f"the baselines run on the standard tasks ('gymnax:<id>', 'brax:<name>'); "
+                         f"{cfg.env!r} is the paper's pendulum (experiments/swingup_study.py runs "
+                         f"PPO and SAC there)")
+    task = tasks.make_task(cfg.env)
+    settings = {**preset_settings(preset, algorithm, task.dt), **(overrides or {})}
+    budget = int(num_timesteps or cfg.num_updates * cfg.episodes_per_update * cfg.episode_length)
+    runs = []
+    for i, seed in enumerate(seeds):
+        r = train_on_task(algorithm, cfg.env, budget, cfg.episode_length, seed,
+                          num_evals=num_evals, hidden_layers=tuple(hidden_layers), **settings)
+        runs.append(r)
+        if progress is not None:
+            progress(f"[{algorithm}] seed {seed} ({i + 1}/{len(seeds)}): final return "
+                     f"{float(r.episode_return[-1]):.1f} after {int(r.env_steps[-1])} steps, "
+                     f"{r.wall_time:.0f}s")
+    returns = np.stack([r.episode_return for r in runs])
+    return dict(algorithm=algorithm, preset=preset, env=cfg.env, settings=settings,
+                num_timesteps=budget, seeds=[int(s) for s in seeds],
+                env_steps=np.asarray(runs[0].env_steps), returns=returns,
+                wall_s=[float(r.wall_time) for r in runs],
+                summary=summarise_returns(runs[0].env_steps, returns, task.threshold))
+
+
+# Aliases of the swing-up's success criterion and rates (`gpguided_jax.swingup`).
 swingup_success = swingup.success
 success_flags = swingup.success_flags
 policy_success_rate = swingup.success_rate

@@ -1,4 +1,4 @@
-"""The `gpguided` command line: parsing and the commands (demo, reproduce, sweep, bench).
+"""The `gpguided` command line: parsing and the commands (demo, reproduce, baseline, sweep, bench).
 `gpguided --help` lists the commands; each has its own --help. The process's set-up before a
 command runs (LAPACK threads, CPU devices, precision, compilation cache) is `runtime`'s."""
 
@@ -191,6 +191,46 @@ def _cmd_bench(args) -> int:
     return 0
 
 
+def _cmd_baseline(args) -> int:
+    runtime.set_cpu_devices(None)
+    runtime.set_compile_cache(args.compile_cache)
+    import json
+
+    import numpy as np
+
+    from gpguided_jax import baselines, checkpoints
+
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        raise SystemExit(f"gpguided baseline: error: --out {args.out} exists and is not a "
+                         "directory")
+    seeds = list(range(args.seed_start, args.seed_start + args.seeds))
+    try:
+        res = baselines.run_preset(args.algorithm, args.preset, seeds, env=args.env,
+                                   num_timesteps=args.steps, num_evals=args.evals,
+                                   hidden_layers=tuple(args.hidden),
+                                   overrides=_parse_overrides(args.set),
+                                   progress=lambda line: print(line, file=sys.stderr, flush=True))
+    except ValueError as e:
+        raise SystemExit(f"gpguided baseline: error: {e}") from None
+    os.makedirs(args.out, exist_ok=True)
+    stem = os.path.join(args.out, f"baseline_{args.algorithm}")
+    np.savez(stem + ".npz", seeds=np.asarray(seeds), env_steps=res["env_steps"],
+             returns=res["returns"])
+    meta = {k: v for k, v in res.items() if k not in ("env_steps", "returns")}
+    checkpoints.atomic_write_text(stem + ".json", json.dumps(meta, indent=2))
+    s = res["summary"]
+    line = (f"{args.algorithm} on {res['env']} ({res['num_timesteps']} steps, {s['seeds']} seeds): "
+            f"final return IQM {s['final_return_iqm']:.1f} [{s['ci95'][0]:.1f}, "
+            f"{s['ci95'][1]:.1f}]")
+    if s["threshold"] is not None:
+        hits = [v for v in s["steps_to_threshold"] if v is not None]
+        line += (f"; {len(hits)} of {s['seeds']} seeds reach {s['threshold']:g}"
+                 + (f", median {float(np.median(hits)):.0f} steps" if hits else ""))
+    print(line)
+    print(f"wrote {stem}.npz and {stem}.json")
+    return 0
+
+
 def _cmd_sweep(args) -> int:
     from gpguided_jax import sweep
 
@@ -254,7 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Guided policy search with sparse online GPs (Jakab & Csato 2012) in JAX.",
     )
     sub = ap.add_subparsers(dest="command", required=True)
-    for add in (_add_demo, _add_reproduce, _add_sweep, _add_bench):
+    for add in (_add_demo, _add_reproduce, _add_baseline, _add_sweep, _add_bench):
         add(sub)
     return ap
 
@@ -339,6 +379,45 @@ def _add_reproduce(sub) -> None:
                      "records agree to rounding)")
     rep.add_argument("--max-chunks", type=int, default=None, help=argparse.SUPPRESS)
     rep.set_defaults(func=_cmd_reproduce)
+
+
+def _add_baseline(sub) -> None:
+    from gpguided_jax.config import BASELINE_PRESETS, PRESETS
+
+    bl = sub.add_parser(
+        "baseline",
+        formatter_class=_DefaultsHelp,
+        help="run brax's PPO or SAC on a standard task with a preset's budget",
+        description="Runs brax's PPO or SAC on a standard task (gymnax:<id> or brax:<name>), one "
+        "run per seed, with the preset's episode length and budget of environment steps (the "
+        "methods' budget) and, for "
+        f"{', '.join(sorted(BASELINE_PRESETS))}, its tuned settings; the deterministic policy is "
+        "evaluated --evals times. Writes baseline_<algorithm>.npz (returns per seed and "
+        "evaluation) and .json (settings, wall time, final return IQM and steps to the task's "
+        "threshold) to --out.",
+    )
+    bl.add_argument("algorithm", choices=("ppo", "sac"))
+    bl.add_argument("--preset", default="pendulum-v1", choices=sorted(PRESETS),
+                    help="budget, episode length, environment and tuned settings")
+    bl.add_argument("--env", default=None, metavar="ENV",
+                    help="another environment than the preset's (gymnax:<id> or brax:<name>)")
+    bl.add_argument("--seeds", type=positive_int, default=10, help="number of seeds")
+    bl.add_argument("--seed-start", type=non_negative_int, default=REPORTED_SEED_START,
+                    help="first seed (the presets were tuned on seeds below 1000)")
+    bl.add_argument("--steps", type=positive_int, default=None,
+                    help="budget of environment steps (default: the preset's, updates x "
+                    "episodes x episode length)")
+    bl.add_argument("--evals", type=positive_int, default=26,
+                    help="evaluations, the initial policy's included (at least 2)")
+    bl.add_argument("--hidden", type=positive_int, nargs="+", default=[64, 64],
+                    help="hidden sizes of every MLP")
+    bl.add_argument("--set", nargs="+", default=None, metavar="KEY=VALUE",
+                    help="further trainer arguments, e.g. --set num_envs=4 batch_size=32")
+    bl.add_argument("--out", default="results/baseline", help="output directory")
+    bl.add_argument("--compile-cache", default=runtime.DEFAULT_COMPILE_CACHE, metavar="DIR",
+                    help="JAX's persistent compilation cache (a subdirectory per CPU type; 'none' "
+                    "turns it off)")
+    bl.set_defaults(func=_cmd_baseline)
 
 
 def _add_sweep(sub) -> None:

@@ -458,6 +458,17 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
     },
 }
 
+# Per standard preset, brax's PPO and SAC as tuned with the methods' budget
+# (experiments/standard_tasks.py tune; docs/standard_tasks.md): overrides of
+# `baselines.PPO_DEFAULTS` / `SAC_DEFAULTS`, a 'horizon' in seconds for the discount.
+# `gpguided baseline ppo|sac --preset <name>` runs them.
+BASELINE_PRESETS: dict[str, dict[str, dict]] = {
+    "pendulum-v1": {"ppo": {"learning_rate": 0.003},
+                    "sac": {"learning_rate": 0.003, "grad_updates_per_step": 16}},
+    "mountaincar-continuous": {"ppo": {"learning_rate": 0.003},
+                               "sac": {"learning_rate": 0.003, "grad_updates_per_step": 16}},
+}
+
 
 def preset(name: str, **overrides) -> TrainConfig:
     """The named preset (`PRESETS`: 'paper', 'swingup', 'tiny' and the standard tasks) with field

@@ -120,3 +120,88 @@ def test_train_sac_tiny_budget_returns_finite_curve_and_success():
     # hanging down, 1.25 s episodes: nothing is upright for the last second
     np.testing.assert_array_equal(result.success_rate, np.zeros(2))
     assert jax.config.jax_enable_x64
+
+
+# ------------------------------------------------------------------------------------------------
+# the baselines on the standard tasks: `gpguided baseline`
+# ------------------------------------------------------------------------------------------------
+
+
+def test_baseline_summary_against_a_hand_computation():
+    """The first evaluation (the initial policy) is left out; a seed's final return is the mean of
+    its last 10% of evaluations; the IQM of 8 seeds is the mean of the middle 4 (scipy's
+    trim_mean at 25%); steps to threshold are the first evaluation at or above it."""
+    from scipy import stats as sps
+
+    rng = np.random.default_rng(0)
+    steps = np.arange(0, 21_000, 1000)  # 21 evaluations: 20 after the initial one
+    returns = rng.normal(-400, 50, (8, 21)).cumsum(axis=1) / np.arange(1, 22)
+    returns[3, 7:] = -150.0  # seed 3 reaches -200 at the 8th evaluation, 7000 steps
+    returns[:, 0] = 0.0  # the initial policy's evaluation would reach it at step 0
+    s = baselines.summarise_returns(steps, returns, -200.0)
+    finals = returns[:, -2:].mean(axis=1)  # 10% of 20 evaluations
+    assert s["final_return_iqm"] == pytest.approx(sps.trim_mean(finals, 0.25), rel=1e-12)
+    assert s["final_return_mean"] == pytest.approx(finals.mean(), rel=1e-12)
+    assert s["ci95"][0] <= s["final_return_iqm"] <= s["ci95"][1]
+    want = [None if not (r[1:] >= -200).any() else int(steps[1:][np.argmax(r[1:] >= -200)])
+            for r in returns]
+    assert s["steps_to_threshold"] == want and want[3] == 7000
+    assert "steps_to_threshold" not in baselines.summarise_returns(steps, returns, None)
+
+
+def test_the_baseline_presets_hold_the_tuned_settings(monkeypatch):
+    import json
+    import os
+
+    from conftest import ROOT
+
+    from gpguided_jax import config
+
+    for task, algos in config.BASELINE_PRESETS.items():
+        with open(os.path.join(ROOT, "docs", "results", "standard", task, "tuning.json")) as f:
+            tuning = json.load(f)["methods"]
+        for algo, settings in algos.items():
+            assert settings == pytest.approx(tuning[algo]["chosen"]), (task, algo)
+    assert baselines.preset_settings("paper", "sac", 0.05) == {}  # no tuning: brax's defaults
+    # a horizon in seconds becomes brax's discounting at the task's step: exp(-0.05 / 0.5)
+    monkeypatch.setitem(config.BASELINE_PRESETS, "tiny", {"ppo": {"horizon": 0.5}})
+    got = baselines.preset_settings("tiny", "ppo", 0.05)
+    assert got == {"discounting": pytest.approx(math.exp(-0.1), rel=1e-12)}
+
+
+@pytest.mark.parametrize("args,message", [
+    (["sac", "--preset", "paper"], "the paper's pendulum"),
+    (["sac", "--env", "gymnax:CartPole-v1"], "discrete action"),
+    (["ppo", "--evals", "1"], "num_evals must be >= 2"),
+])
+def test_bad_baseline_runs_are_refused_in_one_line(args, message, tmp_path):
+    from gpguided_jax import cli
+
+    with pytest.raises(SystemExit) as e:
+        cli.main(["baseline", *args, "--out", str(tmp_path), "--compile-cache", "none"])
+    assert message in str(e.value) and "\n" not in str(e.value)
+
+
+def test_gpguided_baseline_runs_sac_on_a_gymnax_task(tmp_path, capsys):
+    """`gpguided baseline sac` at tiny sizes on gymnax's Pendulum-v1 with the tiny preset's budget:
+    the files it writes agree with each other and with its summary line."""
+    import json
+
+    from gpguided_jax import cli
+
+    out = tmp_path / "bl"
+    assert cli.main(["baseline", "sac", "--preset", "tiny", "--env", "gymnax:Pendulum-v1",
+                     "--seeds", "1", "--evals", "3", "--hidden", "8", "--set", "num_envs=4",
+                     "batch_size=16", "min_replay_size=64", "max_replay_size=1000",
+                     "num_eval_envs=4", "--out", str(out), "--compile-cache", "none"]) == 0
+    meta = json.loads((out / "baseline_sac.json").read_text())
+    data = np.load(out / "baseline_sac.npz")
+    assert meta["env"] == "gymnax:Pendulum-v1" and meta["seeds"] == [1000]
+    assert meta["settings"]["min_replay_size"] == 64 and meta["settings"]["num_envs"] == 4
+    assert data["returns"].shape == (1, 3) and np.all(np.isfinite(data["returns"]))
+    assert data["env_steps"][0] == 0 and data["env_steps"][-1] >= meta["num_timesteps"]
+    # tiny preset: 6 updates x 2 episodes x 20 steps
+    assert meta["num_timesteps"] == 6 * 2 * 20
+    final = float(data["returns"][0, -1])  # 10% of 2 evaluations: the last one
+    assert meta["summary"]["final_return_iqm"] == pytest.approx(final)
+    assert f"final return IQM {final:.1f}" in capsys.readouterr().out
