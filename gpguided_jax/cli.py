@@ -219,7 +219,9 @@ def _cmd_baseline(args) -> int:
     meta = {k: v for k, v in res.items() if k not in ("env_steps", "returns")}
     checkpoints.atomic_write_text(stem + ".json", json.dumps(meta, indent=2))
     s = res["summary"]
-    line = (f"{args.algorithm} on {res['env']} ({res['num_timesteps']} steps, {s['seeds']} seeds): "
+    seeds_word = "seed" if s["seeds"] == 1 else "seeds"
+    line = (f"{args.algorithm} on {res['env']} ({res['num_timesteps']} steps, {s['seeds']} "
+            f"{seeds_word}): "
             f"final return IQM {s['final_return_iqm']:.1f} [{s['ci95'][0]:.1f}, "
             f"{s['ci95'][1]:.1f}]")
     if s["threshold"] is not None:
