@@ -34,6 +34,7 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import math
 import os
@@ -132,6 +133,23 @@ ABLATION = {
     "guided_direction": ("white", "hold_0.2s", "hold_0.5s"),
 }
 DTYPE = "float32"
+
+# The standard tasks (`standard` stage): each method at its tuned settings for the task
+# (config.METHOD_PRESETS) under each scheme it can take, seeds 1000-1009, no further tuning.
+# MountainCarContinuous-v0's step counts as 1 s (an episode is 999 steps, a swing of the car
+# about a hundred): OU noise of a tenth and of a whole swing, actions held for 10 steps, and the
+# controller's weights perturbed once per episode.
+STANDARD_SEEDS = tuple(range(1000, 1010))
+STANDARD_DTYPE = "float64"  # as experiments/standard_tasks.py ran the white-noise comparison
+STANDARD_SCHEMES = {
+    "mountaincar-continuous": {
+        "white": {},
+        "ou_10s": {"exploration": "ou", "noise_correlation_time": 10.0},
+        "ou_100s": {"exploration": "ou", "noise_correlation_time": 100.0},
+        "hold_10s": {"hold_time": 10.0},
+        "parameter_episode": {"exploration": "parameter"},
+    },
+}
 
 
 def log(msg: str) -> None:
@@ -339,10 +357,74 @@ def report(out: str) -> str:
     return json.dumps(table["rows"], indent=1)
 
 
+# --------------------------------------------------------------------------------------- standard
+
+
+def _schemes_of(method: str, schemes: dict) -> list[str]:
+    """The schemes a method can take: guided_direction white noise (held or not) only, parameter
+    noise for reinforce and gp_pg only."""
+    names = []
+    for name, scheme in schemes.items():
+        kind = scheme.get("exploration", "white")
+        if method == "guided_direction" and kind != "white":
+            continue
+        if kind == "parameter" and method not in ("reinforce", "gp_pg"):
+            continue
+        names.append(name)
+    return names
+
+
+def standard(task: str, out: str, only=None) -> dict:
+    """Each method at its tuned settings for `task` under each of `STANDARD_SCHEMES[task]`, one
+    `gpguided_jax.reproduce` run per (method, scheme) under <out>/<task>/; writes
+    <out>/<task>/standard.json with each run's summary row."""
+    base = os.path.join(out, task)
+    path = os.path.join(base, "standard.json")
+    meta = {"task": task, "seeds": list(STANDARD_SEEDS), "runs": {}}
+    if os.path.exists(path):
+        with open(path) as f:
+            meta = json.load(f)
+    for method in only or METHODS:
+        for name in _schemes_of(method, STANDARD_SCHEMES[task]):
+            key = f"{method}/{name}"
+            overrides = {**SCHEME_BASE, **STANDARD_SCHEMES[task][name]}
+            if meta["runs"].get(key, {}).get("overrides") == overrides:
+                continue
+            run_dir = os.path.join(base, method, name)
+            t0 = time.perf_counter()
+            reproduce.reproduce(task, STANDARD_SEEDS, [method], run_dir, dtype=STANDARD_DTYPE,
+                                overrides=overrides, progress=log, gp_program="per_method")
+            with open(os.path.join(run_dir, "summary.csv")) as f:
+                row = next(csv.DictReader(f))
+            meta["runs"][key] = dict(overrides=overrides, wall_s=time.perf_counter() - t0,
+                                     summary=row)
+            checkpoints.atomic_write_text(path, json.dumps(meta, indent=2))
+            log(f"[standard {task}] {key}: return {float(row['final_return_iqm']):.1f}, "
+                f"{row['seeds_reaching_threshold']} seeds reach the threshold "
+                f"({meta['runs'][key]['wall_s']:.0f}s)")
+    # the guidance against the same unguided noise: P(guided_variance > gp_pg), final return
+    finals = {}
+    for key in meta["runs"]:
+        with np.load(os.path.join(base, key, "results.npz")) as f:
+            finals[key] = S.summaries.final_performance(np.asarray(f["eval_return"][0], float))
+    meta["guidance"] = []
+    for name in STANDARD_SCHEMES[task]:
+        a, b = f"guided_variance/{name}", f"gp_pg/{name}"
+        if a in finals and b in finals:
+            lo, hi = stats_lib.probability_of_improvement_ci(finals[a], finals[b])
+            meta["guidance"].append(dict(
+                scheme=name, p=stats_lib.probability_of_improvement(finals[a], finals[b]),
+                ci=[lo, hi]))
+    checkpoints.atomic_write_text(path, json.dumps(meta, indent=2))
+    return meta
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("stage", choices=("reach", "tune", "heldout", "report"))
+    ap.add_argument("stage", choices=("reach", "tune", "heldout", "report", "standard"))
+    ap.add_argument("--task", default="mountaincar-continuous", choices=sorted(STANDARD_SCHEMES),
+                    help="the standard task of the `standard` stage")
     ap.add_argument("--out", default="docs/results/exploration")
     ap.add_argument("--only", nargs="+", default=None, choices=METHODS, help="these methods only")
     ap.add_argument("--compile-cache", default=runtime.DEFAULT_COMPILE_CACHE)
@@ -355,6 +437,9 @@ def main(argv=None) -> int:
         tune(args.out, args.only)
     elif args.stage == "heldout":
         heldout(args.out, args.only)
+    elif args.stage == "standard":
+        gpguided_jax.enable_x64()
+        standard(args.task, args.out, args.only)
     else:
         print(report(args.out))
     return 0
