@@ -301,6 +301,12 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _add_compile_cache(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--compile-cache", default=runtime.DEFAULT_COMPILE_CACHE, metavar="DIR",
+                        help="JAX's persistent compilation cache, so that a repeated run does not "
+                        "compile again (a subdirectory per CPU type; 'none' turns it off)")
+
+
 def _add_demo(sub) -> None:
     demo = sub.add_parser("demo", help="simulate and plot one pendulum swing-up",
                           formatter_class=_DefaultsHelp)
@@ -365,9 +371,7 @@ def _add_reproduce(sub) -> None:
     rep.add_argument("--keep-checkpoints", action="store_true",
                      help="keep the checkpoints once the results are written (they are deleted)")
     _add_device_options(rep, "seeds")
-    rep.add_argument("--compile-cache", default=runtime.DEFAULT_COMPILE_CACHE, metavar="DIR",
-                     help="JAX's persistent compilation cache, so that a repeated run does not "
-                     "compile again (a subdirectory per CPU type; 'none' turns it off)")
+    _add_compile_cache(rep)
     rep.add_argument("--coordinator", default=None, metavar="HOST:PORT",
                      help="several processes (jax.distributed): process 0's address, the same "
                      "for every process")
@@ -416,9 +420,7 @@ def _add_baseline(sub) -> None:
     bl.add_argument("--set", nargs="+", default=None, metavar="KEY=VALUE",
                     help="further trainer arguments, e.g. --set num_envs=4 batch_size=32")
     bl.add_argument("--out", default="results/baseline", help="output directory")
-    bl.add_argument("--compile-cache", default=runtime.DEFAULT_COMPILE_CACHE, metavar="DIR",
-                    help="JAX's persistent compilation cache (a subdirectory per CPU type; 'none' "
-                    "turns it off)")
+    _add_compile_cache(bl)
     bl.set_defaults(func=_cmd_baseline)
 
 
@@ -460,9 +462,7 @@ def _add_sweep(sub) -> None:
     sw.add_argument("--set", nargs="*", metavar="FIELD=VALUE",
                     help="further config overrides, e.g. --set gp_capacity=50 optimizer=adam")
     _add_device_options(sw, "runs")
-    sw.add_argument("--compile-cache", default=runtime.DEFAULT_COMPILE_CACHE, metavar="DIR",
-                    help="JAX's persistent compilation cache (a subdirectory per CPU type; 'none' "
-                    "turns it off)")
+    _add_compile_cache(sw)
     sw.set_defaults(func=_cmd_sweep)
 
 
