@@ -62,8 +62,6 @@ import numpy as np
 from gpguided_jax import _random
 
 NOISES = ("white", "ou", "coloured", "parameter")
-# the processes of the action noise eps_t (a Gaussian policy a_t = m_t + s_t eps_t)
-ACTION_NOISES = ("white", "ou", "coloured")
 
 
 class NoiseProcess(NamedTuple):
@@ -286,4 +284,3 @@ def parameter_scores(noise: NoiseProcess, eps, std, u_max: float):
     sq = sum(jnp.sum(x.reshape(x.shape[0], -1) ** 2, axis=1) for x in leaves)
     controller = jax.tree_util.tree_map(lambda e: at_decisions(e * (u_max / std)), eps)
     return controller, at_decisions(sq - num_weights)
-
