@@ -374,6 +374,36 @@ def _schemes_of(method: str, schemes: dict) -> list[str]:
     return names
 
 
+def standard_tune(task: str, out: str, only=None) -> dict:
+    """The scheme each method would choose on the tuning seeds: each scheme of
+    `STANDARD_SCHEMES[task]` it can take at its tuned settings, on `TUNING_SEEDS`; score: the mean
+    final return of the deterministic policy. Writes <out>/<task>/standard_tuning.json."""
+    base = os.path.join(out, task)
+    path = os.path.join(base, "standard_tuning.json")
+    rec = {"task": task, "seeds": list(TUNING_SEEDS), "methods": {}}
+    if os.path.exists(path):
+        with open(path) as f:
+            rec = json.load(f)
+    for method in only or METHODS:
+        tried = rec["methods"].get(method, {}).get("tried", [])
+        done = {t["scheme"] for t in tried}
+        for name in _schemes_of(method, STANDARD_SCHEMES[task]):
+            if name in done:
+                continue
+            overrides = {**SCHEME_BASE, **STANDARD_SCHEMES[task][name]}
+            run_dir = os.path.join(base, "tuning", method, name)
+            reproduce.reproduce(task, TUNING_SEEDS, [method], run_dir, dtype=STANDARD_DTYPE,
+                                overrides=overrides, progress=log, gp_program="per_method")
+            with np.load(os.path.join(run_dir, "results.npz")) as f:
+                final = S.summaries.final_performance(np.asarray(f["eval_return"][0], float))
+            tried.append(dict(scheme=name, score=float(final.mean())))
+            log(f"[standard-tune {task}] {method}/{name}: {float(final.mean()):.1f}")
+        rec["methods"][method] = dict(tried=tried,
+                                      chosen=max(tried, key=lambda t: t["score"])["scheme"])
+        checkpoints.atomic_write_text(path, json.dumps(rec, indent=2))
+    return rec
+
+
 def standard(task: str, out: str, only=None) -> dict:
     """Each method at its tuned settings for `task` under each of `STANDARD_SCHEMES[task]`, one
     `gpguided_jax.reproduce` run per (method, scheme) under <out>/<task>/; writes
@@ -422,7 +452,8 @@ def standard(task: str, out: str, only=None) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("stage", choices=("reach", "tune", "heldout", "report", "standard"))
+    ap.add_argument("stage", choices=("reach", "tune", "heldout", "report", "standard-tune",
+                                      "standard"))
     ap.add_argument("--task", default="mountaincar-continuous", choices=sorted(STANDARD_SCHEMES),
                     help="the standard task of the `standard` stage")
     ap.add_argument("--out", default="docs/results/exploration")
@@ -437,6 +468,9 @@ def main(argv=None) -> int:
         tune(args.out, args.only)
     elif args.stage == "heldout":
         heldout(args.out, args.only)
+    elif args.stage == "standard-tune":
+        gpguided_jax.enable_x64()
+        standard_tune(args.task, args.out, args.only)
     elif args.stage == "standard":
         gpguided_jax.enable_x64()
         standard(args.task, args.out, args.only)
