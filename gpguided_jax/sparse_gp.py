@@ -34,7 +34,7 @@ One update with a pair (x, y), in the paper's named steps:
    coefficients of the projection of x onto the BVs).
 2. insert (if x is novel, see below): x goes into a free slot j. In the new BV set,
    T gains the row t = (e_j - e)/sqrt(gamma) (then T^T T is the inverse of the bordered Gram
-   matrix, Q_new = [[Q, 0], [0, 0]] + [e; -1][e; -1]^T / gamma, Csato-Opper's), and so does Z:
+   matrix, Q_new = [[Q, 0], [0, 0]] + (e, -1)(e, -1)^T / gamma, Csato-Opper's), and so does Z:
    the value of f at x is not yet observed, so Cov[alpha] grows by exactly the same t t^T
    (C is padded with zeros in Csato-Opper). The kernel vector of x becomes k + k** e_j.
 3. observe (eq. 7-8): the GP takes in y = f(x) + noise, f(x) ~ k^T alpha. This is a Bayesian
