@@ -85,6 +85,7 @@ exploration: $(STAMP)
 	$(PY) experiments/exploration_study.py tune
 	$(PY) experiments/exploration_study.py heldout
 	$(PY) experiments/exploration_study.py report
+	$(PY) experiments/exploration_study.py standard-tune --task mountaincar-continuous
 	$(PY) experiments/exploration_study.py standard --task mountaincar-continuous
 	$(PY) experiments/docs_tables.py --write
 

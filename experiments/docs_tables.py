@@ -458,13 +458,19 @@ def exploration_standard_table(task: str) -> str:
     with open(os.path.join(RESULTS, path)) as f:
         d = json.load(f)
     n = len(d["seeds"])
-    lines = ["| method | exploration | final return, IQM [95% CI] | seeds reaching the threshold "
-             "| steps to threshold, median | wall time |", "|---|---|---|---|---|---|"]
+    tuning_path = os.path.join("exploration", task, "standard_tuning.json")
+    with open(os.path.join(RESULTS, tuning_path)) as f:
+        tuning = json.load(f)
+    chosen = {m: r["chosen"] for m, r in tuning["methods"].items()}
+    lines = ["| method | exploration | chosen on the tuning seeds | final return, IQM [95% CI] | "
+             "seeds reaching the threshold | steps to threshold, median | wall time |",
+             "|---|---|---|---|---|---|---|"]
     for key, run in d["runs"].items():
         method, scheme = key.split("/")
         r = run["summary"]
         steps = float(r["steps_to_threshold_median"])
-        lines.append(f"| {method} | {scheme} | {float(r['final_return_iqm']):.1f} "
+        mark = "yes" if chosen.get(method) == scheme else ""
+        lines.append(f"| {method} | {scheme} | {mark} | {float(r['final_return_iqm']):.1f} "
                      f"[{float(r['return_ci95_low']):.1f}, {float(r['return_ci95_high']):.1f}] | "
                      f"{r['seeds_reaching_threshold']}/{n} | "
                      f"{'–' if math.isnan(steps) else f'{steps:,.0f}'} | {run['wall_s']:.0f} s |")
@@ -474,7 +480,10 @@ def exploration_standard_table(task: str) -> str:
                  "Final return: the deterministic policy, last 10% of evaluations per seed; steps "
                  "to threshold: the median over the seeds that reach it, the GP methods' "
                  "hyperparameter-fit episodes included. Wall time: all seeds, compilation "
-                 "included, on a 2-core CPU at times shared with other runs. " + _source(path))
+                 "included, on a 2-core CPU at times shared with other runs. Chosen on the "
+                 f"tuning seeds: the scheme with the highest mean final return on seeds "
+                 f"{tuning['seeds'][0]}–{tuning['seeds'][-1]} at the same settings. "
+                 + _source(path, tuning_path))
     if d.get("guidance"):
         lines += ["", "| exploration | P(guided_variance > gp_pg), final return | 95% CI |",
                   "|---|---|---|"]
