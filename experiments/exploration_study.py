@@ -142,6 +142,15 @@ DTYPE = "float32"
 STANDARD_SEEDS = tuple(range(1000, 1010))
 STANDARD_DTYPE = "float64"  # as experiments/standard_tasks.py ran the white-noise comparison
 STANDARD_SCHEMES = {
+    # Pendulum-v1 at 20 Hz (a swing of about 2 s): OU noise of a quarter and of a whole swing,
+    # actions held for 0.2 s (4 steps), and the controller's weights perturbed once per episode.
+    "pendulum-v1": {
+        "white": {},
+        "ou_0.5s": {"exploration": "ou", "noise_correlation_time": 0.5},
+        "ou_2s": {"exploration": "ou", "noise_correlation_time": 2.0},
+        "hold_0.2s": {"hold_time": 0.2},
+        "parameter_episode": {"exploration": "parameter"},
+    },
     "mountaincar-continuous": {
         "white": {},
         "ou_10s": {"exploration": "ou", "noise_correlation_time": 10.0},
