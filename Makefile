@@ -78,8 +78,8 @@ standard: $(STAMP)
 	$(PY) experiments/docs_tables.py --write
 
 # The exploration study on the swing-up preset: reach, tuning on seeds 100-101, then seeds
-# 1000-1019 with every scheme per method; then MountainCarContinuous-v0 with every scheme per
-# method (it resumes: remove docs/results/exploration to start afresh).
+# 1000-1019 with every scheme per method; then MountainCarContinuous-v0 and Pendulum-v1 with
+# every scheme per method (it resumes: remove docs/results/exploration to start afresh).
 exploration: $(STAMP)
 	$(PY) experiments/exploration_study.py reach
 	$(PY) experiments/exploration_study.py tune
@@ -87,6 +87,8 @@ exploration: $(STAMP)
 	$(PY) experiments/exploration_study.py report
 	$(PY) experiments/exploration_study.py standard-tune --task mountaincar-continuous
 	$(PY) experiments/exploration_study.py standard --task mountaincar-continuous
+	$(PY) experiments/exploration_study.py standard-tune --task pendulum-v1
+	$(PY) experiments/exploration_study.py standard --task pendulum-v1
 	$(PY) experiments/docs_tables.py --write
 
 demo: $(STAMP)

@@ -513,6 +513,7 @@ TABLES = {
     "exploration_tuning": exploration_tuning_table,
     "exploration": exploration_table,
     "exploration_mountaincar": lambda: exploration_standard_table("mountaincar-continuous"),
+    "exploration_pendulum_v1": lambda: exploration_standard_table("pendulum-v1"),
     **{f"standard_{t.replace('-', '_')}": (lambda t=t: standard_table(t)) for t in STANDARD_TASKS},
     **{f"standard_tuning_{t.replace('-', '_')}": (lambda t=t: standard_tuning_table(t))
        for t in STANDARD_TASKS},
