@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import run_script
 
 from gpguided_jax import baselines, pendulum
 
@@ -205,3 +206,10 @@ def test_gpguided_baseline_runs_sac_on_a_gymnax_task(tmp_path, capsys):
     final = float(data["returns"][0, -1])  # 10% of 2 evaluations: the last one
     assert meta["summary"]["final_return_iqm"] == pytest.approx(final)
     assert f"final return IQM {final:.1f}" in capsys.readouterr().out
+
+
+def test_importing_the_baselines_prints_nothing():
+    """brax's import of mujoco prints on stdout that its GPU backend is missing; the command
+    line's stdout (a table, or `gpguided bench`'s JSON) must not carry it."""
+    proc = run_script(["-c", "import gpguided_jax.baselines, gpguided_jax.tasks"], fast_compile=False)
+    assert proc.stdout == "" and proc.stderr == ""
