@@ -20,7 +20,8 @@
   tests and the compile-cache test compile as a user's run does.
 * `make test` runs `--dist loadgroup`, so that the tests of one `xdist_group` share their
   session-scoped fixtures on one worker; where xdist's grouping was lost, the grouped tests fail
-  saying so (`pytest_collection_modifyitems` below).
+  saying so (`pytest_collection_modifyitems` below). The long modules are collected first, so
+  that the workers end together.
 """
 
 import functools
@@ -112,17 +113,28 @@ def two_device_run(tmp_path_factory):
     return out
 
 
+# Modules whose tests are long (end-to-end runs in subprocesses, whole training programs): run
+# first, so that the two workers end together on short tests rather than one of them idling while
+# the other finishes a long one (xdist hands out tests in collection order after the groups).
+_LONG_MODULES = ("test_distributed.py", "test_tasks.py", "test_notebooks.py", "test_bench.py",
+                 "test_analysis.py", "test_train.py", "test_cli.py", "test_baselines.py",
+                 "test_sweep.py", "test_sparse_gp.py")
+
+
 _UNGROUPED = []  # xdist_group tests that this worker's xdist failed to group
 
 
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(config, items):
-    """In an xdist worker under `--dist loadgroup`, every test with an `xdist_group` mark must have
-    the group appended to its node id (``...@group``): that suffix is all xdist's scheduler groups
-    by. pytest 9.2 ignores xdist 3.8's way of appending it (pytest-dev/pytest-xdist#1386, hence
-    `pytest<9.2` in pyproject.toml), and the groups were split over the workers without a word,
-    each worker computing the shared fixtures again (the suite took a minute longer). Such tests
-    now fail, saying why (an error raised here, in a worker, is not shown)."""
+    """Puts the long modules first (`_LONG_MODULES`). In an xdist worker under `--dist
+    loadgroup`, every test with an `xdist_group` mark must have the group appended to its node id
+    (``...@group``): that suffix is all xdist's scheduler groups by. pytest 9.2 ignores xdist
+    3.8's way of appending it (pytest-dev/pytest-xdist#1386, hence `pytest<9.2` in
+    pyproject.toml), and the groups were split over the workers without a word, each worker
+    computing the shared fixtures again (the suite took a minute longer). Such tests now fail,
+    saying why (an error raised here, in a worker, is not shown)."""
+    rank = {name: i for i, name in enumerate(_LONG_MODULES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable within a module
     if getattr(config.option, "loadgroup", False):  # set by xdist, in its workers only
         _UNGROUPED.extend(item.nodeid for item in items
                           if item.get_closest_marker("xdist_group") and "@" not in item.nodeid)
