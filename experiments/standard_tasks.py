@@ -64,6 +64,9 @@ REFERENCES = {
     "mountaincar-continuous": "rl-baselines3-zoo, benchmark.md (one run each, deterministic "
                               "policy): SAC 94.7 ± 1.1 after 50k steps, TD3 93.5 ± 0.1 after 300k, "
                               "PPO 88.3 ± 2.6 after 20k",
+    "inverted-pendulum": "rl-baselines3-zoo's benchmark.md has no row for MuJoCo's "
+                         "InvertedPendulum; gymnasium counts InvertedPendulum-v4 solved at 950 "
+                         "over its 1,000 steps",
 }
 
 
@@ -256,6 +259,7 @@ def heldout(task: str, out: str, seeds, only: list[str], part: str | None = None
             with np.load(os.path.join(run_dir, "results.npz")) as f:
                 curves = {"return": f["eval_return"][0]}
             curves["steps"] = method_env_steps(base_config(task, name))
+            curves["steps_used"] = steps_used(run_dir, base_config(task, name))
         else:
             rs = []
             for s in seeds:
@@ -295,6 +299,18 @@ def _join_parts(out: str, name: str) -> None:
 # ---------------------------------------------------------------------------------------- report
 
 
+def steps_used(run_dir: str, cfg) -> np.ndarray:
+    """(seeds,) environment steps that a method's learning episodes used. On a task that ends
+    early the compiled roll-out keeps its full length, so the budget counts every slot; the steps
+    used are, per update, the episodes times their mean length, which is the mean return over the
+    mean reward per step (both over the steps before the end; the full length where the reward
+    per step is 0)."""
+    with np.load(os.path.join(run_dir, "results.npz")) as f:
+        ret, rew = np.asarray(f["mean_return"][0], float), np.asarray(f["mean_reward"][0], float)
+    length = np.where(rew != 0, ret / np.where(rew != 0, rew, 1.0), cfg.episode_length)
+    return cfg.episodes_per_update * length.sum(axis=-1)
+
+
 def report(task: str, out: str) -> None:
     gather_tuning(task, out)
     curves, meta = {}, {"wall_s": {}}
@@ -304,10 +320,16 @@ def report(task: str, out: str) -> None:
         if os.path.exists(path):
             with np.load(path) as f:
                 curves[f"{n}_steps"], curves[f"{n}_return"] = f["steps"], f["return"]
+                if "steps_used" in f:
+                    curves[f"{n}_used"] = f["steps_used"]
+            run = os.path.join(out, "methods", n, "results.npz")
+            if f"{n}_used" not in curves and os.path.exists(run):  # from a run before the field
+                curves[f"{n}_used"] = steps_used(os.path.dirname(run), base_config(task, n))
             with open(path[:-4] + ".json") as f:
                 m = json.load(f)
             meta["wall_s"][n], meta["seeds"] = m["wall_s"], m["seeds"]
     threshold = tasks.THRESHOLDS[config_lib.PRESETS[task]["env"]]
+    terminates = tasks.make_task(config_lib.PRESETS[task]["env"]).terminates
     names = [n for n in (*METHODS, *BASELINES) if f"{n}_return" in curves]
     rows = []
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -326,6 +348,10 @@ def report(task: str, out: str) -> None:
                                                     if np.isfinite(reach).any() else None),
                          seeds_reaching=int(np.isfinite(reach).sum()), env_steps=int(steps[-1]),
                          wall_s=float(meta["wall_s"][n])))
+        if terminates and (n in BASELINES or f"{n}_used" in curves):
+            # the baselines step the environment for their whole budget
+            used = curves[f"{n}_used"] if n in METHODS else np.full(ret.shape[0], float(steps[-1]))
+            rows[-1]["steps_used_median"] = float(np.median(used))
         mean, half = stats_lib.t_interval(ret)
         ax.plot(steps, mean, label=n)
         ax.fill_between(steps, mean - half, mean + half, alpha=0.2)

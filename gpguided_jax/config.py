@@ -456,6 +456,14 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
         "guided_direction": {"learning_rate": 0.01, "candidate_scale": 2.0,
                              "inverse_temperature": 100.0},
     },
+    "inverted-pendulum": {
+        "reinforce": {"learning_rate": 0.01, "discount_horizon": 2.0,
+                      "init_log_std": math.log(0.25)},
+        "gp_pg": {"learning_rate": 0.01},
+        "guided_variance": {"learning_rate": 0.003, "guided_variance_scale": 2.0},
+        "guided_direction": {"learning_rate": 0.01, "discount_horizon": 2.0,
+                             "inverse_temperature": 1.0},
+    },
 }
 
 # Per standard preset, brax's PPO and SAC as tuned with the methods' budget
@@ -467,6 +475,7 @@ BASELINE_PRESETS: dict[str, dict[str, dict]] = {
                     "sac": {"learning_rate": 0.003, "grad_updates_per_step": 16}},
     "mountaincar-continuous": {"ppo": {"learning_rate": 0.003},
                                "sac": {"learning_rate": 0.003, "grad_updates_per_step": 16}},
+    "inverted-pendulum": {"ppo": {"learning_rate": 0.0001}, "sac": {"learning_rate": 0.003}},
 }
 
 

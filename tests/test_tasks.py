@@ -218,7 +218,8 @@ def test_a_tiny_run_on_a_standard_environment_from_the_command_line(env, methods
         assert int(r["env_steps"]) == fit + cfg.num_updates * cfg.episodes_per_update * length
 
 
-@pytest.mark.parametrize("task,dt", [("pendulum-v1", 0.05), ("mountaincar-continuous", 1.0)])
+@pytest.mark.parametrize("task,dt", [("pendulum-v1", 0.05), ("mountaincar-continuous", 1.0),
+                                     ("inverted-pendulum", 0.04)])
 def test_the_standard_presets_hold_the_tuned_settings(task, dt):
     """`gpguided reproduce --preset <task>` runs each method as the tuning chose
     (docs/results/standard/<task>/tuning.json; its horizons are the presets' discount_horizon)."""
