@@ -19,13 +19,9 @@ CONSISTENCY_SEEDS := $(shell seq $(SEED_START) $$(($(SEED_START) + 9)))
 $(STAMP): pyproject.toml requirements.lock
 	python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade "pip>=24"
-	# the lock pins every package, dependencies included: no resolver (pip check verifies it).
-	# Byte-compiled by compileall on every core rather than by pip one file at a time; byte-compiled
-	# at install at all because where PYTHONDONTWRITEBYTECODE is set, no import writes a .pyc and
-	# every process (each test's subprocess, each notebook kernel) compiled jax, brax and scipy
-	# from source again
+	# the lock pins every package, dependencies included: no resolver (pip check verifies it), and
+	# modules are byte-compiled when first imported rather than all at install
 	$(PY) -m pip install --quiet --no-deps --no-compile -r requirements.lock
-	$(PY) -m compileall -q -j 0 $(VENV)/lib > /dev/null
 	$(PY) -m pip install --quiet --no-deps -e .
 	$(PY) -m pip check
 	touch $(STAMP)
@@ -98,8 +94,11 @@ exploration: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/gpguided demo --out $(OUT)/demo
 
+# Bytecode is written on first import even where PYTHONDONTWRITEBYTECODE is set: the suite starts
+# many Python processes (its subprocesses, notebook kernels), and without it each one compiled
+# jax, brax and scipy from source again.
 test: $(STAMP)
-	$(PY) -m pytest -q -n 2 --dist loadgroup --durations=15 tests
+	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -q -n 2 --dist loadgroup --durations=15 tests
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check gpguided_jax experiments tests
