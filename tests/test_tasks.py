@@ -229,6 +229,10 @@ def test_the_standard_presets_hold_the_tuned_settings(task, dt):
         chosen = {("discount_horizon" if k == "horizon" else k): v
                   for k, v in tuning["methods"][method]["chosen"].items()}
         assert config.METHOD_PRESETS[task][method] == pytest.approx(chosen), method
+        if task == "inverted-pendulum":
+            # building a brax task compiles its physics (a quarter of a minute); that the preset
+            # applies these settings is checked on the gymnax tasks
+            continue
         cfg = config.preset(task, method=method)
         assert float(cfg.learning_rate) == pytest.approx(chosen["learning_rate"])
         horizon = chosen.get("discount_horizon", config.PRESETS[task]["discount_horizon"])
