@@ -322,9 +322,6 @@ def report(task: str, out: str) -> None:
                 curves[f"{n}_steps"], curves[f"{n}_return"] = f["steps"], f["return"]
                 if "steps_used" in f:
                     curves[f"{n}_used"] = f["steps_used"]
-            run = os.path.join(out, "methods", n, "results.npz")
-            if f"{n}_used" not in curves and os.path.exists(run):  # from a run before the field
-                curves[f"{n}_used"] = steps_used(os.path.dirname(run), base_config(task, n))
             with open(path[:-4] + ".json") as f:
                 m = json.load(f)
             meta["wall_s"][n], meta["seeds"] = m["wall_s"], m["seeds"]
