@@ -21,13 +21,18 @@ Stages (each writes under --out, default docs/results/exploration):
             guidance against the same correlated noise unguided), the figure, and the action
             length-scale fitted under each scheme.
 
-The baselines (brax PPO and SAC) are not re-tuned here; the swing-up study's held-out runs
-(experiments/swingup_study.py) use the white-noise study's tuned settings.
+``baselines-tune``  brax PPO and SAC re-tuned for this study on the tuning seeds, with the methods'
+            budget (`CONFIGS_PER_METHOD` configurations x 2 seeds, full runs): horizon,
+            exploration and learning parameters (`BASELINE_GRID`). Writes baseline_tuning.json.
+``baselines``  Both with their chosen settings on the held-out seeds, into heldout/<name>.npz;
+            `report` sets them beside the methods. Writes baselines.json.
 
 Usage:
   python experiments/exploration_study.py reach
   python experiments/exploration_study.py tune
   python experiments/exploration_study.py heldout
+  python experiments/exploration_study.py baselines-tune
+  python experiments/exploration_study.py baselines
   python experiments/exploration_study.py report
 """
 
@@ -53,7 +58,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import swingup_study as S  # noqa: E402
 
 import gpguided_jax  # noqa: E402
-from gpguided_jax import checkpoints, reproduce, runtime, sweep  # noqa: E402
+from gpguided_jax import checkpoints, reproduce, runtime, sweep, tasks  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
 from gpguided_jax import stats as stats_lib  # noqa: E402
 from gpguided_jax import train as train_lib  # noqa: E402
@@ -133,6 +138,28 @@ ABLATION = {
     "guided_direction": ("white", "hold_0.2s", "hold_0.5s"),
 }
 DTYPE = "float32"
+
+# brax PPO and SAC (`baselines-tune`): the same budget as each method, CONFIGS_PER_METHOD
+# configurations x the tuning seeds, by coordinate search from the white-noise study's choice
+# (`BASELINE_START`, docs/results/swingup/tuning.json): each stage tries its values with the best
+# settings so far and keeps the best configuration seen. A stage over two parameters tries the
+# listed pairs. The horizon is in seconds (brax's discount at the preset's 5 ms step: 0.5 s is the
+# 0.99 of the white-noise study, 5 s is 0.999). Exploration: PPO's entropy cost; SAC learns its
+# entropy weight against a target entropy, so its reward scale sets how much exploration a unit
+# of return is worth, and its gradient steps per environment step how fast it leaves the noise.
+BASELINES = ("ppo", "sac")
+BASELINE_START = {"ppo": {"learning_rate": 0.003},
+                  "sac": {"learning_rate": 0.001, "reward_scaling": 3.0}}
+BASELINE_GRID = {
+    "ppo": [(("horizon", "entropy_cost"), [(0.5, 1e-3), (2.0, 1e-3), (5.0, 1e-3),
+                                           (0.5, 1e-2), (2.0, 1e-2), (5.0, 1e-2)]),
+            ("learning_rate", [0.001, 0.01]), ("unroll_length", [10, 50]),
+            ("gae_lambda", [0.9, 0.99])],
+    "sac": [(("horizon", "grad_updates_per_step"), [(0.5, 1), (2.0, 1), (5.0, 1),
+                                                    (0.5, 8), (2.0, 8), (5.0, 8)]),
+            ("learning_rate", [0.0003, 0.003]), ("reward_scaling", [1.0, 10.0]),
+            ("grad_updates_per_step", [4, 16])],
+}
 
 # The standard tasks (`standard` stage): each method at its tuned settings for the task
 # (config.METHOD_PRESETS) under each scheme it can take, seeds 1000-1009, no further tuning.
@@ -287,6 +314,81 @@ def heldout(out: str, only=None) -> None:
             meta["runs"][key] = dict(overrides=overrides, wall_s=time.perf_counter() - t0)
             checkpoints.atomic_write_text(path, json.dumps(meta, indent=2))
             log(f"[heldout] {key}: {meta['runs'][key]['wall_s']:.0f}s")
+
+
+# -------------------------------------------------------------------------------------- baselines
+
+
+def baseline_kwargs(settings: dict) -> dict:
+    """brax trainer arguments of a baseline's settings: the horizon (s) as its discount."""
+    kw = dict(settings)
+    if "horizon" in kw:
+        kw["discounting"] = tasks.discount_for_horizon(
+            kw.pop("horizon"), config_lib.control_interval(preset("reinforce")))
+    return kw
+
+
+def _stages(name: str):
+    """(settings of each configuration) per coordinate-search stage of `BASELINE_GRID`."""
+    for params, values in BASELINE_GRID[name]:
+        if isinstance(params, tuple):
+            yield [dict(zip(params, v)) for v in values]
+        else:
+            yield [{params: v} for v in values]
+
+
+def baselines_tune(out: str, only=None) -> dict:
+    path = os.path.join(out, "baseline_tuning.json")
+    rep = {"seeds": list(TUNING_SEEDS), "env_steps": S.budget(preset("reinforce")), "methods": {}}
+    if os.path.exists(path):
+        with open(path) as f:
+            rep = json.load(f)
+    cfg = preset("reinforce")
+    for name in only or BASELINES:
+        chosen, tried, t0 = dict(BASELINE_START[name]), [], time.perf_counter()
+        for stage in _stages(name):
+            for change in stage:
+                settings = {**chosen, **change}
+                results = [S.run_baseline(name, cfg, s, baseline_kwargs(settings))
+                           for s in TUNING_SEEDS]
+                succ, rew = S.score_baseline(results)
+                tried.append(dict(settings=settings, success=succ, reward=rew,
+                                  wall_s=float(sum(r.wall_time for r in results))))
+                log(f"[tune {name}] {settings}: success {succ:.2f}, reward {rew:.3f} "
+                    f"({time.perf_counter() - t0:.0f}s)")
+            chosen = dict(S._best(tried)["settings"])
+        assert len(tried) == CONFIGS_PER_METHOD
+        rep["methods"][name] = dict(tried=tried, chosen=chosen, wall_s=time.perf_counter() - t0)
+        checkpoints.atomic_write_text(path, json.dumps(rep, indent=2))
+    return rep
+
+
+def baselines_heldout(out: str, only=None) -> dict:
+    with open(os.path.join(out, "baseline_tuning.json")) as f:
+        tuning = json.load(f)
+    path = os.path.join(out, "baselines.json")
+    meta = {"seeds": list(HELDOUT_SEEDS), "runs": {}}
+    if os.path.exists(path):
+        with open(path) as f:
+            meta = json.load(f)
+    cfg = preset("reinforce")
+    os.makedirs(os.path.join(out, "heldout"), exist_ok=True)
+    for name in only or BASELINES:
+        settings = tuning["methods"][name]["chosen"]
+        rs = []
+        for s in HELDOUT_SEEDS:
+            r = S.run_baseline(name, cfg, s, baseline_kwargs(settings))
+            log(f"[heldout {name}] seed {s}: {r.wall_time:.0f}s, success {r.success_rate[-1]:.2f}, "
+                f"reward {r.reward_per_step[-1]:.3f}")
+            rs.append(r)
+        checkpoints.atomic_savez(os.path.join(out, "heldout", f"{name}.npz"),
+                                 steps=rs[0].env_steps,
+                                 success=np.stack([r.success_rate for r in rs]),
+                                 reward=np.stack([r.reward_per_step for r in rs]))
+        meta["runs"][name] = dict(settings=settings,
+                                  wall_s=float(sum(r.wall_time for r in rs)))
+        checkpoints.atomic_write_text(path, json.dumps(meta, indent=2))
+    return meta
 
 
 # ----------------------------------------------------------------------------------------- report
@@ -461,14 +563,19 @@ def standard(task: str, out: str, only=None) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("stage", choices=("reach", "tune", "heldout", "report", "standard-tune",
-                                      "standard"))
+    ap.add_argument("stage", choices=("reach", "tune", "heldout", "baselines-tune", "baselines",
+                                      "report", "standard-tune", "standard"))
     ap.add_argument("--task", default="mountaincar-continuous", choices=sorted(STANDARD_SCHEMES),
                     help="the standard task of the `standard` stage")
     ap.add_argument("--out", default="docs/results/exploration")
-    ap.add_argument("--only", nargs="+", default=None, choices=METHODS, help="these methods only")
+    ap.add_argument("--only", nargs="+", default=None, choices=(*METHODS, *BASELINES),
+                    help="these methods (or, for the baseline stages, baselines) only")
     ap.add_argument("--compile-cache", default=runtime.DEFAULT_COMPILE_CACHE)
     args = ap.parse_args(argv)
+    if args.only:
+        names = BASELINES if args.stage.startswith("baselines") else METHODS
+        if not set(args.only) <= set(names):
+            ap.error(f"--only: the {args.stage} stage takes {', '.join(names)}")
     runtime.set_compile_cache(args.compile_cache)
     os.makedirs(args.out, exist_ok=True)
     if args.stage == "reach":
@@ -477,6 +584,10 @@ def main(argv=None) -> int:
         tune(args.out, args.only)
     elif args.stage == "heldout":
         heldout(args.out, args.only)
+    elif args.stage == "baselines-tune":
+        baselines_tune(args.out, args.only)
+    elif args.stage == "baselines":
+        baselines_heldout(args.out, args.only)
     elif args.stage == "standard-tune":
         gpguided_jax.enable_x64()
         standard_tune(args.task, args.out, args.only)
