@@ -446,13 +446,36 @@ def report(out: str) -> str:
                 m, h = stats_lib.t_interval(y)
                 ax.plot(steps, m, label=f"{method} ({scheme})")
                 ax.fill_between(steps, m - h, m + h, alpha=0.2)
+    bpath = os.path.join(out, "baselines.json")
+    if os.path.exists(bpath):  # brax PPO and SAC, re-tuned for this study (`baselines`)
+        with open(bpath) as f:
+            bmeta = json.load(f)
+        assert bmeta["seeds"] == meta["seeds"], "the baselines ran on other seeds"
+        for name, run in bmeta["runs"].items():
+            with np.load(os.path.join(out, "heldout", f"{name}.npz")) as f:
+                steps, success, reward = (np.asarray(f[k], float)
+                                          for k in ("steps", "success", "reward"))
+            row = dict(method=name, scheme="its own", chosen=True, settings=run["settings"],
+                       final_success=float(S.summaries.final_performance(success).mean()),
+                       final_reward=float(S.summaries.final_performance(reward).mean()),
+                       action_length_scale=None, wall_s=run["wall_s"])
+            for level in (0.5, 0.9):  # each evaluation is 64 episodes: no trailing mean
+                hit = S.steps_to(steps, success, level)
+                med, lo, hi = S.median_ci(hit)
+                row[f"steps_to_{int(level * 100)}"] = dict(
+                    seeds=int(np.isfinite(hit).sum()), median=med, ci=[lo, hi])
+            table["rows"].append(row)
+            for ax, y in zip(axes, (success, reward)):
+                m, h = stats_lib.t_interval(y)
+                ax.plot(steps, m, ls="--", label=f"{name} (brax, re-tuned)")
+                ax.fill_between(steps, m - h, m + h, alpha=0.15)
     for scheme in ("ou_0.5s", "coloured_2", "hold_0.5s"):
         a, b = f"guided_variance/{scheme}", f"gp_pg/{scheme}"
         if a in finals and b in finals:
             p = stats_lib.probability_of_improvement(finals[a], finals[b])
             lo, hi = stats_lib.probability_of_improvement_ci(finals[a], finals[b])
             table["guidance"].append(dict(scheme=scheme, p=p, ci=[lo, hi]))
-    axes[0].set_ylabel("success rate (trailing mean over 5 updates)")
+    axes[0].set_ylabel("success rate (methods: trailing mean over 5 updates)")
     axes[1].set_ylabel("reward per step")
     for ax in axes:
         ax.set_xlabel("environment steps")

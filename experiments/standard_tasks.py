@@ -67,6 +67,9 @@ REFERENCES = {
     "inverted-pendulum": "rl-baselines3-zoo's benchmark.md has no row for MuJoCo's "
                          "InvertedPendulum; gymnasium counts InvertedPendulum-v4 solved at 950 "
                          "over its 1,000 steps",
+    "inverted-double-pendulum": "rl-baselines3-zoo's benchmark.md has no row for MuJoCo's "
+                                "InvertedDoublePendulum; gymnasium counts "
+                                "InvertedDoublePendulum-v4 solved at 9,100 over its 1,000 steps",
 }
 
 

@@ -127,7 +127,8 @@ def _reproduce(args) -> int:
     for flag, field in (("exploration", "exploration"),
                         ("correlation_time", "noise_correlation_time"),
                         ("noise_exponent", "noise_exponent"),
-                        ("resample_time", "noise_resample_time"), ("hold_time", "hold_time")):
+                        ("resample_time", "noise_resample_time"), ("hold_time", "hold_time"),
+                        ("optimism", "optimism")):
         if getattr(args, flag) is not None:
             overrides[field] = getattr(args, flag)
     from gpguided_jax import config
@@ -357,6 +358,10 @@ def _add_reproduce(sub) -> None:
     rep.add_argument("--hold-time", type=float, default=None, metavar="SECONDS",
                      help="decide every SECONDS and hold the action in between (default: the "
                      "preset's, 0: every control step)")
+    rep.add_argument("--optimism", type=float, default=None, metavar="KAPPA",
+                     help="guided_direction scores its candidates by the GP's mean plus KAPPA "
+                     "times its standard deviation (default: the preset's, 0: the mean, as the "
+                     "paper)")
     rep.add_argument("--seeds", type=positive_int, default=10, help="number of seeds")
     rep.add_argument("--seed-start", type=non_negative_int, default=REPORTED_SEED_START,
                      help="first seed (the reported results use seeds from 1000 on; the presets "

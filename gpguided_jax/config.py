@@ -54,6 +54,7 @@ STATIC_FIELDS = (
     "noise_exponent",
     "noise_resample_time",
     "hold_time",
+    "optimism",
 )
 
 
@@ -112,6 +113,9 @@ class TrainConfig:
         takes in decisions only, at least `gp_stride` steps apart (the hyperparameter fit takes
         every step's pair). 0 (default): every step. The deterministic evaluation
         (`eval_episodes`) applies c(s) at every step.
+      optimism: kappa of guided_direction's optimistic score: its candidates are scored by
+        Q_GP(s, a_j) + kappa sigma(s, a_j) (sigma the GP's latent standard deviation) instead of
+        Q_GP(s, a_j). 0 (default): the paper. The other methods ignore it.
 
     Traced fields (leaves; sweepable by vmap):
       learning_rate: eta of the ascent step.
@@ -163,6 +167,7 @@ class TrainConfig:
     noise_exponent: float = 1.0
     noise_resample_time: float = 0.0
     hold_time: float = 0.0
+    optimism: float = 0.0
     # traced
     learning_rate: Any = 2e-4
     max_grad_norm: Any = 300.0
@@ -268,7 +273,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     for f, ok, what in (("noise_correlation_time", lambda v: v > 0, "> 0 seconds"),
                         ("noise_exponent", lambda v: 0 <= v <= 3, "in [0, 3]"),
                         ("noise_resample_time", lambda v: v >= 0, ">= 0 seconds"),
-                        ("hold_time", lambda v: v >= 0, ">= 0 seconds")):
+                        ("hold_time", lambda v: v >= 0, ">= 0 seconds"),
+                        ("optimism", lambda v: v >= 0, ">= 0")):
         v = getattr(cfg, f)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
                 or not ok(v):
@@ -403,7 +409,7 @@ PRESETS: dict[str, dict] = {
 # `eval_episodes` deterministic episodes per update. The budgets were fixed before any run:
 # Pendulum-v1 100k steps (rl-baselines3-zoo trains PPO for 100k, SAC for 20k), the car 150k (SAC
 # 50k, TD3 300k), the brax pendulums 100k. The discount is a horizon in seconds (1 s: 20 steps of
-# Pendulum-v1, 25 of the brax pendulums).
+# Pendulum-v1, 25 of brax's inverted pendulum, 50 of its double pendulum).
 _STANDARD = dict(controller="rbf", optimizer="adam", learning_rate=0.01, gp_capacity=100,
                  hyperfit_optimizer="lbfgs", hyperfit_steps=15, eval_episodes=5,
                  discount_horizon=1.0)
@@ -464,6 +470,13 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
         "guided_direction": {"learning_rate": 0.01, "discount_horizon": 2.0,
                              "inverse_temperature": 1.0},
     },
+    "inverted-double-pendulum": {
+        "reinforce": {"learning_rate": 0.01, "init_log_std": math.log(0.25)},
+        "gp_pg": {"learning_rate": 0.01},
+        "guided_variance": {"learning_rate": 0.003, "discount_horizon": 2.0,
+                            "guided_variance_scale": 0.25},
+        "guided_direction": {"learning_rate": 0.01, "discount_horizon": 0.5},
+    },
 }
 
 # Per standard preset, brax's PPO and SAC as tuned with the methods' budget
@@ -476,6 +489,8 @@ BASELINE_PRESETS: dict[str, dict[str, dict]] = {
     "mountaincar-continuous": {"ppo": {"learning_rate": 0.003},
                                "sac": {"learning_rate": 0.003, "grad_updates_per_step": 16}},
     "inverted-pendulum": {"ppo": {"learning_rate": 0.0001}, "sac": {"learning_rate": 0.003}},
+    "inverted-double-pendulum": {"ppo": {"learning_rate": 0.003, "entropy_cost": 0.0001},
+                                 "sac": {"learning_rate": 0.003, "grad_updates_per_step": 16}},
 }
 
 

@@ -33,6 +33,7 @@ semi-definite (the paper writes k** - k^T C k with C of the opposite sign), comp
 form as max(k** - |T k|^2, 0) + |Z k|^2, which is >= 0 by construction.
 """
 
+import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -520,11 +521,25 @@ def _gibbs_spread(candidates, probs):
     return jnp.sqrt(jnp.maximum(probs @ (offsets * offsets), 0.0))
 
 
+def candidate_scores(gp, kernel, state, candidates, optimism: float = 0.0,
+                     features=_PENDULUM_FEATURES):
+    """The Gibbs candidates' scores before normalisation: Q_GP(s, a_j) (the paper), or with
+    `optimism` kappa > 0 the optimistic Q_GP(s, a_j) + kappa sigma(s, a_j), sigma^2 the GP's
+    latent variance (`gp_latent_variance`; design: docs/design.md#policies). kappa is static: 0
+    computes no variance."""
+    q = gp_means_over_actions(gp, kernel, state, candidates, features)
+    if not optimism:
+        return q
+    variance = jax.vmap(lambda a: gp_latent_variance(gp, kernel, state, a, features))(candidates)
+    return q + optimism * jnp.sqrt(jnp.maximum(variance, 0.0))
+
+
 def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 32,
-                 features=_PENDULUM_FEATURES) -> Policy:
+                 features=_PENDULUM_FEATURES, optimism: float = 0.0) -> Policy:
     """Gibbs policy over K GP-scored candidate actions (eq. 20-22; design: docs/design.md#policies).
 
-    Sampling: a_j ~ N(c(s), sigma^2_cand), j = 1..K; Q~_j = min-max normalised Q_GP(s, a_j);
+    Sampling: a_j ~ N(c(s), sigma^2_cand), j = 1..K; Q~_j = min-max normalised Q_GP(s, a_j)
+    (with `optimism` kappa > 0: of Q_GP(s, a_j) + kappa sigma(s, a_j), `candidate_scores`);
     E_j = Q~_j exp(-(a_j - c)^2/(2 sigma_e^2)); pi = softmax(beta E); J ~ pi; action a_J.
 
     Score (eq. 21-22), with the candidates and Q~ held constant:
@@ -536,12 +551,18 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
     aux.candidates[aux.index] for an action drawn by `sample`). The density with which the
     candidates themselves were proposed is not part of this log-probability (as in the paper).
 
+    The optimistic score changes which candidates are likely, not the estimator: the scores
+    are held constant like Q~, so the score function is eq. 21-22 with the optimistic Q~.
+
     Args:
       controller: the deterministic controller c(s; theta_c).
       num_candidates: K (static).
+      optimism: kappa >= 0 (static); 0, the paper: the candidates are scored by the GP's mean.
     """
     if num_candidates < 1:
         raise ValueError("num_candidates must be positive")
+    if not (optimism >= 0 and math.isfinite(optimism)):
+        raise ValueError(f"optimism must be finite and >= 0, got {optimism!r}")
 
     def draw(key, theta, state, ctx):
         """The candidates, their energies and the selection; also (E, dc/dtheta_c) for the score."""
@@ -553,7 +574,8 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
         candidates = mean_action + jnp.sqrt(variance) * _random.normal(
             key_candidates, (num_candidates,), mean_action.dtype
         )
-        normalised_q = normalise_q(gp_means_over_actions(ctx.gp, ctx.kernel, state, candidates, features))
+        normalised_q = normalise_q(candidate_scores(ctx.gp, ctx.kernel, state, candidates,
+                                                    optimism, features))
         energy, probs = gibbs_distribution(candidates, normalised_q, mean_action, ctx)
         index = gibbs_select(key_select, energy, ctx.inverse_temperature)
         aux = PolicyAux(mean_action=mean_action, variance=variance, candidates=candidates,
@@ -607,7 +629,7 @@ POLICY_NAMES = ("fixed_noise", "guided_variance", "gibbs")
 
 def make_policy(
     name: str, controller: controllers_lib.Controller, *, num_candidates: int = 32,
-    features=_PENDULUM_FEATURES,
+    features=_PENDULUM_FEATURES, optimism: float = 0.0,
 ) -> Policy:
     """Looks a policy up by its static name.
 
@@ -616,6 +638,7 @@ def make_policy(
         (eq. 16-19) or 'gibbs' (eq. 20-22; alias 'guided_direction').
       controller: the deterministic controller.
       num_candidates: K for the Gibbs policy (static; ignored otherwise).
+      optimism: kappa of the Gibbs policy's optimistic score (static; ignored otherwise).
       features: (state, action) -> the GP's input, the action last (`tasks.Task.features`; the
         default is the pendulum's (sin phi, cos phi, omega, a)).
     """
@@ -624,5 +647,5 @@ def make_policy(
     if name == "guided_variance":
         return guided_variance_policy(controller, features)
     if name in ("gibbs", "guided_direction"):
-        return gibbs_policy(controller, num_candidates, features)
+        return gibbs_policy(controller, num_candidates, features, optimism)
     raise ValueError(f"unknown policy {name!r}; choose from {POLICY_NAMES}")

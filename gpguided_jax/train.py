@@ -186,7 +186,7 @@ def make_program(cfg: TrainConfig) -> Program:
     controller = task.make_controller(cfg.controller)
     policy = policies.make_policy(
         _POLICY_OF_METHOD[cfg.method], controller, num_candidates=cfg.num_candidates,
-        features=task.features)
+        features=task.features, optimism=cfg.optimism)
     dt = control_interval(cfg)
     hold = exploration.hold_steps(cfg.hold_time, dt)
     noise = exploration.make_noise(

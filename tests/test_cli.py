@@ -83,6 +83,7 @@ def test_bad_arguments_are_refused_in_one_line(args, message, capsys):
     (["--exploration", "parameter", "--methods", "guided_variance"], "reinforce and gp_pg only"),
     (["--exploration", "parameter", "--resample-time", "-1"],
      "noise_resample_time: must be >= 0 seconds"),
+    (["--optimism", "-1", "--methods", "guided_direction"], "optimism: must be >= 0"),
 ])
 def test_bad_exploration_is_refused_in_one_line(args, message):
     with pytest.raises(SystemExit) as exc:
@@ -102,6 +103,9 @@ def test_exploration_flags_reach_the_config(monkeypatch):
     cli.main(["reproduce", "--preset", "tiny", "--methods", "gp_pg", "--compile-cache", "none",
               "--exploration", "parameter", "--resample-time", "0.25"])
     assert seen["overrides"] == {"exploration": "parameter", "noise_resample_time": 0.25}
+    cli.main(["reproduce", "--preset", "tiny", "--methods", "guided_direction", "--compile-cache",
+              "none", "--optimism", "2", "--hold-time", "0.01"])
+    assert seen["overrides"] == {"optimism": 2.0, "hold_time": 0.01}
 
 
 def test_import_does_not_touch_the_x64_flag():

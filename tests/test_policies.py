@@ -358,6 +358,56 @@ def test_gibbs_sample_consistency():
     assert float(policy.exploration_std(theta, state, ctx, aux)) == pytest.approx(expected_std)
 
 
+@requires_x64
+@pytest.mark.parametrize("optimism", [0.0, 0.5, 3.0])
+def test_optimistic_candidate_scores_against_an_exact_gp(optimism):
+    """guided_direction's candidates scored by mean + kappa sd of the GP: against the exact GP's
+    posterior by Cholesky in NumPy, on the candidates the sampler drew; the normalised scores
+    and the Gibbs probabilities follow from them."""
+    key = jax.random.PRNGKey(11)
+    k_x, k_y, k_draw = jax.random.split(key, 3)
+    n = 6
+    xs = np.asarray(jax.random.normal(k_x, (n, 4)), float) * [0.6, 0.6, 1.0, 1.5]
+    ys = np.asarray(jax.random.normal(k_y, (n,)), float) * 3.0 - 5.0
+    ls, sf2, sn2 = np.array([0.8, 0.9, 1.3, 1.1]), 2.0, 0.1
+    hyper = kernels.make_kernel_params(ls, sf2, sn2)
+    gp = sparse_gp.exact_state(jnp.asarray(xs), jnp.asarray(ys), hyper, capacity=SLOTS)
+    ctx = policies.make_context(gp, hyper, candidate_scale=4.0)
+    controller = _CONTROLLERS["linear"]
+    policy = policies.make_policy("gibbs", controller, num_candidates=NUM_CANDIDATES,
+                                  optimism=optimism)
+    state = jnp.array([0.4, -0.3])
+    theta = random_theta(controller, jax.random.PRNGKey(2), 0.0, 0.0)
+    _, aux = jax.jit(policy.sample)(k_draw, theta, state, ctx)
+
+    def k(a, b):
+        z = (a[:, None, :] - b[None, :, :]) / ls
+        return sf2 * np.exp(-0.5 * np.sum(z * z, axis=-1))
+
+    x_star = np.stack([np.asarray(kernels.state_action_features(state, a)) for a in
+                       np.asarray(aux.candidates)])
+    chol = np.linalg.cholesky(k(xs, xs) + sn2 * np.eye(n))
+    solve = lambda b: np.linalg.solve(chol.T, np.linalg.solve(chol, b))  # noqa: E731
+    ks = k(x_star, xs)
+    mean = ks @ solve(ys)
+    var = sf2 - np.einsum("ij,ji->i", ks, solve(ks.T))
+    score = mean + optimism * np.sqrt(var)
+    expected = (score - score.min()) / (score.max() - score.min())
+    np.testing.assert_allclose(aux.normalised_q, expected, rtol=1e-9, atol=1e-12)
+    d = np.asarray(aux.candidates - aux.mean_action)
+    energy = expected * np.exp(-0.5 * d * d)
+    p = np.exp(10.0 * (energy - energy.max()))
+    np.testing.assert_allclose(aux.probs, p / p.sum(), rtol=1e-9)
+    if optimism:  # the optimism changes the choice's distribution
+        plain = policies.normalise_q(jnp.asarray(mean))
+        assert np.max(np.abs(np.asarray(plain) - expected)) > 1e-3
+
+
+def test_optimism_must_be_non_negative():
+    with pytest.raises(ValueError, match="optimism"):
+        policies.make_policy("gibbs", _CONTROLLERS["linear"], optimism=-1.0)
+
+
 def test_normalise_q():
     q = jnp.array([-10.0, -3.0, -7.0, -3.0])
     np.testing.assert_allclose(policies.normalise_q(q), [0.0, 1.0, 3.0 / 7.0, 1.0])
