@@ -81,6 +81,9 @@ SCHEMES = {
     "parameter_episode": {"exploration": "parameter"},
     "parameter_0.5s": {"exploration": "parameter", "noise_resample_time": 0.5},
     "parameter_0.2s": {"exploration": "parameter", "noise_resample_time": 0.2},
+    # guided_direction's optimistic score (mean + kappa sd of the GP), its choices held 0.2 s
+    "hold_0.2s_optimism_1": {"hold_time": 0.2, "optimism": 1.0},
+    "hold_0.2s_optimism_3": {"hold_time": 0.2, "optimism": 3.0},
 }
 REACH_SCHEMES = {
     "white": {},
@@ -127,15 +130,17 @@ GRID = {
 }
 FIXED = {"use_baseline": True}
 CONFIGS_PER_METHOD = 12
-# The parameter-noise schemes (reinforce and gp_pg only) were added to the ablation after the
-# tuning above, at each method's chosen learning rate, horizon and amplitude.
+# The parameter-noise schemes (reinforce and gp_pg only) and guided_direction's optimistic
+# scores were added to the ablation after the tuning above, at each method's chosen learning
+# rate, horizon and amplitude; they were not tuned.
 ABLATION = {
     "reinforce": ("white", "ou_0.5s", "coloured_2", "hold_0.5s", "parameter_episode",
                   "parameter_0.5s", "parameter_0.2s"),
     "gp_pg": ("white", "ou_0.5s", "coloured_2", "hold_0.5s", "parameter_episode",
               "parameter_0.5s", "parameter_0.2s"),
     "guided_variance": ("white", "ou_0.5s", "coloured_2", "hold_0.5s"),
-    "guided_direction": ("white", "hold_0.2s", "hold_0.5s"),
+    "guided_direction": ("white", "hold_0.2s", "hold_0.5s", "hold_0.2s_optimism_1",
+                         "hold_0.2s_optimism_3"),
 }
 DTYPE = "float32"
 
