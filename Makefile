@@ -84,6 +84,8 @@ exploration: $(STAMP)
 	$(PY) experiments/exploration_study.py reach
 	$(PY) experiments/exploration_study.py tune
 	$(PY) experiments/exploration_study.py heldout
+	$(PY) experiments/exploration_study.py baselines-tune
+	$(PY) experiments/exploration_study.py baselines
 	$(PY) experiments/exploration_study.py report
 	$(PY) experiments/exploration_study.py standard-tune --task mountaincar-continuous
 	$(PY) experiments/exploration_study.py standard --task mountaincar-continuous
