@@ -347,6 +347,11 @@ def standard_table(task: str) -> str:
                  + ("Environment steps used: a method's learning episodes end when the task ends "
                     "them, yet each counts its full length against the budget; the steps before "
                     "the ends, summed (the hyperparameter fit's excluded). " if used else "")
+                 + ("<method>_restart: the same method with the settings tuned for it and "
+                    "`episode_end='restart'`, which restarts an episode that ends in its remaining "
+                    "slots, so that every slot is an environment step, as for PPO and SAC (not "
+                    "tuned that way). " if any(r["method"].endswith("_restart") for r in d["rows"])
+                    else "")
                  + (f"Published: {d['reference']}. " if d.get("reference") else "")
                  + _source(path))
     return "\n".join(lines)

@@ -49,6 +49,10 @@ from gpguided_jax import stats as stats_lib  # noqa: E402
 
 METHODS = config_lib.METHODS
 BASELINES = ("ppo", "sac")
+# On a task whose episodes end early, each method again with the settings tuned above and
+# `episode_end='restart'` (an episode that ends is restarted in its remaining slots, so every slot
+# is an environment step, as for PPO and SAC): `heldout --only reinforce_restart ...`.
+RESTARTED = tuple(f"{m}_restart" for m in METHODS)
 CONFIGS_PER_METHOD = 8
 TUNING_SEEDS = (100, 101)
 HELDOUT_SEEDS = tuple(range(1000, 1010))
@@ -243,26 +247,30 @@ def heldout(task: str, out: str, seeds, only: list[str], part: str | None = None
         k, n = map(int, part.split("/"))
         seeds, suffix = list(seeds)[k::n], f".part{k}"
     for name in only:
-        path = os.path.join(out, "tuning", f"{name}.json")
+        method, end = _method_and_end(name)
+        path = os.path.join(out, "tuning", f"{method}.json")
         settings = {}
         if os.path.exists(path):
             with open(path) as f:
                 settings = json.load(f)["chosen"]
         meta = {"seeds": list(seeds), "settings": settings}
-        if name in METHODS:  # its own run: its wall time includes its fit and compilation
+        if method in METHODS:  # its own run: its wall time includes its fit and compilation
             run_dir = os.path.join(out, "methods", name)
             t0 = time.perf_counter()
             # the tuned settings are the preset's (config.METHOD_PRESETS, checked against the
             # tuning record by the tests); passed here too, so that this stage runs right after
             # the tuning
-            res = reproduce.reproduce(task, seeds, [name], run_dir, chunk_size=25,
-                                      overrides=method_overrides(task, settings))
+            res = reproduce.reproduce(task, seeds, [method], run_dir, chunk_size=25,
+                                      overrides={**method_overrides(task, settings),
+                                                 "episode_end": end})
             meta["wall_s"] = time.perf_counter() - t0
+            meta["episode_end"] = end
             assert res["complete"]
             with np.load(os.path.join(run_dir, "results.npz")) as f:
                 curves = {"return": f["eval_return"][0]}
-            curves["steps"] = method_env_steps(base_config(task, name))
-            curves["steps_used"] = steps_used(run_dir, base_config(task, name))
+            cfg = base_config(task, method, episode_end=end)
+            curves["steps"] = method_env_steps(cfg)
+            curves["steps_used"] = steps_used(run_dir, cfg)
         else:
             rs = []
             for s in seeds:
@@ -302,12 +310,24 @@ def _join_parts(out: str, name: str) -> None:
 # ---------------------------------------------------------------------------------------- report
 
 
+def _method_and_end(name: str) -> tuple[str, str]:
+    """(method, episode_end) of a name of METHODS, RESTARTED or BASELINES."""
+    if name.endswith("_restart"):
+        return name[: -len("_restart")], "restart"
+    return name, "mask"
+
+
 def steps_used(run_dir: str, cfg) -> np.ndarray:
     """(seeds,) environment steps that a method's learning episodes used. On a task that ends
     early the compiled roll-out keeps its full length, so the budget counts every slot; the steps
     used are, per update, the episodes times their mean length, which is the mean return over the
     mean reward per step (both over the steps before the end; the full length where the reward
-    per step is 0)."""
+    per step is 0). With `episode_end='restart'` every slot is a step."""
+    if cfg.episode_end == "restart":
+        with np.load(os.path.join(run_dir, "results.npz")) as f:
+            seeds = f["mean_return"].shape[1]
+        return np.full(seeds, float(cfg.num_updates * cfg.episodes_per_update
+                                    * cfg.episode_length))
     with np.load(os.path.join(run_dir, "results.npz")) as f:
         ret, rew = np.asarray(f["mean_return"][0], float), np.asarray(f["mean_reward"][0], float)
     length = np.where(rew != 0, ret / np.where(rew != 0, rew, 1.0), cfg.episode_length)
@@ -317,7 +337,7 @@ def steps_used(run_dir: str, cfg) -> np.ndarray:
 def report(task: str, out: str) -> None:
     gather_tuning(task, out)
     curves, meta = {}, {"wall_s": {}}
-    for n in (*METHODS, *BASELINES):
+    for n in (*METHODS, *RESTARTED, *BASELINES):
         _join_parts(out, n)
         path = os.path.join(out, "heldout", f"{n}.npz")
         if os.path.exists(path):
@@ -330,7 +350,7 @@ def report(task: str, out: str) -> None:
             meta["wall_s"][n], meta["seeds"] = m["wall_s"], m["seeds"]
     threshold = tasks.THRESHOLDS[config_lib.PRESETS[task]["env"]]
     terminates = tasks.make_task(config_lib.PRESETS[task]["env"]).terminates
-    names = [n for n in (*METHODS, *BASELINES) if f"{n}_return" in curves]
+    names = [n for n in (*METHODS, *RESTARTED, *BASELINES) if f"{n}_return" in curves]
     rows = []
     fig, ax = plt.subplots(figsize=(7, 4))
     for n in names:
@@ -350,10 +370,11 @@ def report(task: str, out: str) -> None:
                          wall_s=float(meta["wall_s"][n])))
         if terminates and (n in BASELINES or f"{n}_used" in curves):
             # the baselines step the environment for their whole budget
-            used = curves[f"{n}_used"] if n in METHODS else np.full(ret.shape[0], float(steps[-1]))
+            used = (curves[f"{n}_used"] if n not in BASELINES
+                    else np.full(ret.shape[0], float(steps[-1])))
             rows[-1]["steps_used_median"] = float(np.median(used))
         mean, half = stats_lib.t_interval(ret)
-        ax.plot(steps, mean, label=n)
+        ax.plot(steps, mean, label=n, ls=":" if n in RESTARTED else "-")
         ax.fill_between(steps, mean - half, mean + half, alpha=0.2)
     ax.axhline(threshold, color="k", ls="--", lw=0.8)
     ax.set_xlabel("environment steps")
@@ -380,8 +401,12 @@ def main(argv=None) -> int:
     p.add_argument("--part", default=None, metavar="K/N",
                    help="heldout: a baseline's seeds K, K + N, ... only (N processes at once)")
     p.add_argument("--only", nargs="+", default=[*METHODS, *BASELINES],
-                   help="tune, heldout: these methods and baselines")
+                   choices=[*METHODS, *RESTARTED, *BASELINES],
+                   help="tune, heldout: these methods and baselines (heldout: also "
+                   "<method>_restart, the method with episode_end='restart')")
     args = p.parse_args(argv)
+    if args.stage == "tune" and set(args.only) & set(RESTARTED):
+        p.error("tune: the restarted methods take the settings tuned for their method")
     runtime.single_threaded_lapack()
     runtime.set_compile_cache(runtime.DEFAULT_COMPILE_CACHE)
     gpguided_jax.enable_x64()

@@ -128,7 +128,7 @@ def _reproduce(args) -> int:
                         ("correlation_time", "noise_correlation_time"),
                         ("noise_exponent", "noise_exponent"),
                         ("resample_time", "noise_resample_time"), ("hold_time", "hold_time"),
-                        ("optimism", "optimism")):
+                        ("optimism", "optimism"), ("episode_end", "episode_end")):
         if getattr(args, flag) is not None:
             overrides[field] = getattr(args, flag)
     from gpguided_jax import config
@@ -362,6 +362,10 @@ def _add_reproduce(sub) -> None:
                      help="guided_direction scores its candidates by the GP's mean plus KAPPA "
                      "times its standard deviation (default: the preset's, 0: the mean, as the "
                      "paper)")
+    rep.add_argument("--episode-end", default=None, choices=["mask", "restart"],
+                     help="on a task whose episodes end early: mask the slots after the end "
+                     "(default) or restart the environment in them, so that every slot is an "
+                     "environment step")
     rep.add_argument("--seeds", type=positive_int, default=10, help="number of seeds")
     rep.add_argument("--seed-start", type=non_negative_int, default=REPORTED_SEED_START,
                      help="first seed (the reported results use seeds from 1000 on; the presets "

@@ -28,6 +28,7 @@ CONTROLLERS = ("linear", "rbf")
 AGE_FUNCTIONS = ("exp", "logit")
 OPTIMIZERS = ("sgd", "adam")
 DTYPES = ("float64", "float32")
+EPISODE_ENDS = ("mask", "restart")
 
 STATIC_FIELDS = (
     "method",
@@ -55,6 +56,7 @@ STATIC_FIELDS = (
     "noise_resample_time",
     "hold_time",
     "optimism",
+    "episode_end",
 )
 
 
@@ -113,6 +115,13 @@ class TrainConfig:
         takes in decisions only, at least `gp_stride` steps apart (the hyperparameter fit takes
         every step's pair). 0 (default): every step. The deterministic evaluation
         (`eval_episodes`) applies c(s) at every step.
+      episode_end: what follows an early end of an episode of a task that terminates (a brax
+        pendulum that falls, the car at the goal) within the learning episodes' fixed length:
+        'mask' (default) freezes the environment and masks the slots after the end, so a short
+        episode still counts its full length against the budget; 'restart' resets the environment
+        and goes on in the same slots, the returns-to-go stopping at each end, so that every slot
+        is an environment step, as brax's trainers count them. The deterministic evaluation runs
+        single episodes either way.
       optimism: kappa of guided_direction's optimistic score: its candidates are scored by
         Q_GP(s, a_j) + kappa sigma(s, a_j) (sigma the GP's latent standard deviation) instead of
         Q_GP(s, a_j). 0 (default): the paper. The other methods ignore it.
@@ -168,6 +177,7 @@ class TrainConfig:
     noise_resample_time: float = 0.0
     hold_time: float = 0.0
     optimism: float = 0.0
+    episode_end: str = "mask"
     # traced
     learning_rate: Any = 2e-4
     max_grad_norm: Any = 300.0
@@ -261,6 +271,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         _fail("eval_episodes", f"must be an integer >= 0, got {cfg.eval_episodes!r}")
     if not isinstance(cfg.success_hold_time, (int, float)) or not cfg.success_hold_time > 0:
         _fail("success_hold_time", f"must be > 0 seconds, got {cfg.success_hold_time!r}")
+    if cfg.episode_end not in EPISODE_ENDS:
+        _fail("episode_end", f"unknown episode end {cfg.episode_end!r}; choose from {EPISODE_ENDS}")
     if cfg.exploration not in exploration.NOISES:
         _fail("exploration", f"unknown exploration noise {cfg.exploration!r}; choose from "
               f"{exploration.NOISES}")

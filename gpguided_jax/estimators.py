@@ -22,8 +22,12 @@ import optax
 PyTree = Any
 
 
-def discounted_returns(r_t: jax.Array, discount) -> jax.Array:
+def discounted_returns(r_t: jax.Array, discount, ends: jax.Array | None = None) -> jax.Array:
     """Returns-to-go of one episode: Ret_t = sum_{i=0}^{H-1-t} gamma^i R_{t+i}.
+
+    With `ends` ((H,) bool, True at the last step of an episode that ended and was restarted
+    within the H steps), each return stops at its own episode's end: Ret_t = R_t +
+    gamma (1 - ends_t) Ret_{t+1}.
 
     The sum stops at the end of the episode (no bootstrap). The paper prints the upper limit as
     H - t, one past the last reward of an episode indexed 0..H-1; the sum ends at H - 1 - t
@@ -32,18 +36,28 @@ def discounted_returns(r_t: jax.Array, discount) -> jax.Array:
     Args:
       r_t: (H,) rewards R_0 .. R_{H-1}.
       discount: () gamma.
+      ends: optional (H,) bool, the steps at which an episode ended (None: one episode).
 
     Returns:
       (H,) Ret_0 .. Ret_{H-1}.
     """
     chex.assert_rank(r_t, 1)
     discount = jnp.asarray(discount, r_t.dtype)
+    if ends is None:
+        def backward(ret_tp1, r):
+            ret = r + discount * ret_tp1
+            return ret, ret
 
-    def backward(ret_tp1, r):
-        ret = r + discount * ret_tp1
+        _, returns = jax.lax.scan(backward, jnp.zeros((), r_t.dtype), r_t, reverse=True)
+        return returns
+
+    def backward_to_end(ret_tp1, r_and_end):
+        r, end = r_and_end
+        ret = r + jnp.where(end, jnp.zeros_like(ret_tp1), discount * ret_tp1)
         return ret, ret
 
-    _, returns = jax.lax.scan(backward, jnp.zeros((), r_t.dtype), r_t, reverse=True)
+    _, returns = jax.lax.scan(backward_to_end, jnp.zeros((), r_t.dtype), (r_t, ends),
+                              reverse=True)
     return returns
 
 

@@ -24,8 +24,10 @@ Three kinds of task are supported (`make_task(name)`):
 Episodes have a fixed length (`TrainConfig.episode_length`). An environment that terminates early
 (a brax pendulum that falls, the car that reaches the goal) is frozen in its last state from then
 on: the training loop masks the steps after the end (`Episode.alive`), whose rewards are 0 and which
-enter neither the gradient nor the GP. Rewards are those the environment defines, accumulated
-undiscounted in `eval_return`.
+enter neither the gradient nor the GP. With `TrainConfig.episode_end='restart'` the learning
+episodes instead reset the environment after an end and go on in the remaining slots
+(`Episode.ends`), each return-to-go stopping at its own end, so that every slot is an environment
+step. Rewards are those the environment defines, accumulated undiscounted in `eval_return`.
 
 Observations of a gymnax or brax task are normalised, z = (obs - centre) / scale, with the mean and
 standard deviation of the observations that `PLACEMENT_EPISODES` episodes of uniformly random

@@ -141,6 +141,9 @@ class Episode(NamedTuple):
     scores: policies.PolicyParams  # leaves (H, ...), 0 after the episode's end
     exploration_std: jax.Array  # (H,)
     alive: jax.Array | None  # (H,) bool, True before the end; None for a task that never ends
+    # (H,) bool, True at the steps where an episode ended and the environment was restarted
+    # (`episode_end='restart'`; alive is then None); None otherwise
+    ends: jax.Array | None = None
 
 
 class Program(NamedTuple):
@@ -223,7 +226,7 @@ def policy_context(cfg: TrainConfig, gp, kernel) -> policies.PolicyContext:
 
 
 def run_episode(prog: Program, key, act, cfg: TrainConfig, num_steps: int, hold: int = 1,
-                xs=None):
+                xs=None, restart: bool = False):
     """One episode of `num_steps` steps of the task, acting with `act(key, obs) -> (action, out)`
     (`act(key, obs, x)` with x the decision's entry of `xs`, if given) every `hold` steps and
     holding the action in between.
@@ -232,7 +235,9 @@ def run_episode(prog: Program, key, act, cfg: TrainConfig, num_steps: int, hold:
     (num_steps,) axis, `alive` (num_steps,) bool or None for a task that never ends early, and
     `outs` with a leading axis of decisions, `exploration.num_decisions(num_steps, hold)`. After
     an episode's end the environment stays in its last state, and the rewards are 0 (module notes
-    of `gpguided_jax.tasks`).
+    of `gpguided_jax.tasks`). With `restart` (static) the environment is reset after an end and
+    the steps go on from the new start; `alive` is then `ends`, (num_steps,) bool, True at the
+    steps that ended an episode (whose next_obs is the episode's last observation).
     """
     task = prog.task
     key_reset, key_steps = jax.random.split(key)
@@ -244,6 +249,13 @@ def run_episode(prog: Program, key, act, cfg: TrainConfig, num_steps: int, hold:
         new_state, new_obs, r, done = task.step(key_env, env_state, a, cfg)
         if not task.terminates:
             return (new_state, new_obs, alive), (obs, new_obs, r, alive)
+        if restart:
+            done = jnp.asarray(done, bool)
+            fresh_state, fresh_obs = task.reset(jax.random.fold_in(key_env, 1), cfg)
+            pick = lambda fresh, new: jnp.where(done, fresh, new)  # noqa: E731
+            carry = (jax.tree_util.tree_map(pick, fresh_state, new_state),
+                     pick(fresh_obs, new_obs), alive)
+            return carry, (obs, new_obs, r, done)
         keep = lambda new, old: jnp.where(alive, new, old)  # noqa: E731
         carry = (jax.tree_util.tree_map(keep, new_state, env_state), keep(new_obs, obs),
                  alive & ~done)
@@ -293,12 +305,14 @@ def rollout(prog: Program, key, theta, ctx, policy, cfg: TrainConfig) -> Episode
     """Step 1: one episode of `episode_length` steps with `policy` (GP in `ctx` held fixed),
     deciding every `prog.hold` steps with the exploration noise `prog.noise`."""
     hold, noise, length = prog.hold, prog.noise, prog.config.episode_length
+    restart = prog.config.episode_end == "restart" and prog.task.terminates
     if noise is None or noise.name == "white":
         def act(k, obs):
             a, _, score, std = policy.act(k, theta, obs, ctx)
             return a, (score, std)
 
-        o, o_next, a, r, alive, (scores, std) = run_episode(prog, key, act, cfg, length, hold)
+        o, o_next, a, r, alive, (scores, std) = run_episode(prog, key, act, cfg, length, hold,
+                                                            restart=restart)
     elif noise.name == "parameter":
         # the controller's weights perturbed by a draw per block of decisions, its score at the
         # block's first decision (`exploration.parameter_scores`)
@@ -319,7 +333,8 @@ def rollout(prog: Program, key, theta, ctx, policy, cfg: TrainConfig) -> Episode
             sq = sum(jnp.sum(g * g) for g in jax.tree_util.tree_leaves(grad))
             return a, scale * jnp.sqrt(sq)
 
-        o, o_next, a, r, alive, std = run_episode(prog, key, act, cfg, length, hold, xs=blocks)
+        o, o_next, a, r, alive, std = run_episode(prog, key, act, cfg, length, hold, xs=blocks,
+                                                  restart=restart)
         j_c, j_log_std = exploration.parameter_scores(noise, eps, std_p, u_max)
         scores = policies.PolicyParams(controller=j_c, log_std=j_log_std)
     else:
@@ -333,14 +348,31 @@ def rollout(prog: Program, key, theta, ctx, policy, cfg: TrainConfig) -> Episode
             return mean + std * e, (j_mean, j_std, std)
 
         o, o_next, a, r, alive, (j_mean, j_std, std) = run_episode(prog, key, act, cfg, length,
-                                                                   hold, xs=eps)
+                                                                   hold, xs=eps, restart=restart)
         scores = exploration.correlated_scores(noise, eps, xi, j_mean, j_std)
     scores = jax.tree_util.tree_map(lambda g: spread_decisions(g, hold, length), scores)
     std = spread_decisions(std, hold, length, fill="hold")
+    if restart:  # every step is an environment step; `alive` holds the ends
+        return Episode(o, o_next, a, r, scores, std, None, alive)
     if alive is not None:
         scores = jax.tree_util.tree_map(
             lambda g: g * alive.reshape((-1,) + (1,) * (g.ndim - 1)).astype(g.dtype), scores)
     return Episode(o, o_next, a, r, scores, std, alive)
+
+
+def episode_returns(ep: Episode, cfg: TrainConfig) -> jax.Array:
+    """Returns-to-go of one `Episode` (H,), each stopping at its episode's end."""
+    return estimators.discounted_returns(ep.rewards, cfg.discount, ep.ends)
+
+
+def _mean_episode_return(eps: Episode) -> jax.Array:
+    """Mean undiscounted return of a batch of episodes (N, H): with restarts, the reward of the
+    slots over the episodes in them (the last one cut at the slots' end)."""
+    totals = jnp.sum(eps.rewards, axis=1)
+    if eps.ends is None:
+        return jnp.mean(totals)
+    count = jnp.sum(eps.ends, axis=1) + (~eps.ends[:, -1])
+    return jnp.sum(totals) / jnp.sum(count).astype(totals.dtype)
 
 
 def _alive_mean(values, alive):
@@ -351,14 +383,20 @@ def _alive_mean(values, alive):
     return jnp.sum(values * w) / jnp.maximum(jnp.sum(w), 1.0)
 
 
-def episode_success(prog: Program, next_states, cfg: TrainConfig, rewards=None) -> jax.Array:
+def episode_success(prog: Program, next_states, cfg: TrainConfig, rewards=None,
+                    ends=None) -> jax.Array:
     """Whether one episode succeeded: on the pendulum, `swingup.success` of its visited states
     (False if it is shorter than the hold time); on another task, its return reaching the task's
-    threshold (False without one)."""
+    threshold (False without one). With `ends` (restarted episodes in the same slots): whether
+    one of them reached it."""
     if prog.task.name != "pendulum":
         if prog.task.threshold is None or rewards is None:
             return jnp.zeros((), bool)
-        return jnp.sum(rewards) >= prog.task.threshold
+        if ends is None:
+            return jnp.sum(rewards) >= prog.task.threshold
+        totals = estimators.discounted_returns(rewards, 1.0, ends)  # from each step to its end
+        starts = jnp.concatenate([jnp.ones((1,), bool), ends[:-1]])
+        return jnp.any(starts & (totals >= prog.task.threshold))
     # the hold time in steps is static: it uses the control interval of make_train's config
     dt = float(np.asarray(prog.config.pendulum.dt))
     if swingup.hold_steps(dt, prog.config.success_hold_time) > next_states.shape[0]:
@@ -478,7 +516,7 @@ def _side_by_side(prog: Program, cfg: TrainConfig, state: TrainState, keys):
     same draws as one after another), and their returns-to-go."""
     ctx = policy_context(cfg, state.gp, state.kernel)
     eps = jax.vmap(lambda k: rollout(prog, k, state.theta, ctx, prog.policy, cfg))(keys)
-    returns = jax.vmap(estimators.discounted_returns, in_axes=(0, None))(eps.rewards, cfg.discount)
+    returns = jax.vmap(episode_returns, in_axes=(0, None))(eps, cfg)
     return eps, returns
 
 
@@ -493,7 +531,7 @@ def roll_out_and_take_in(prog: Program, cfg: TrainConfig, state: TrainState, key
         def episode(gp, key_e):
             ctx = policy_context(cfg, gp, state.kernel)
             ep = rollout(prog, key_e, state.theta, ctx, prog.policy, cfg)
-            returns = estimators.discounted_returns(ep.rewards, cfg.discount)
+            returns = episode_returns(ep, cfg)
             gp, fired, error_ratio = _take_in(prog, cfg, state, gp, ep, returns)
             return gp, (ep, returns, fired, error_ratio)
 
@@ -537,7 +575,7 @@ def roll_out_and_take_in_switched(progs, method_index, cfg: TrainConfig, state: 
 
         def own(p):
             ep = rollout(p, key_e, state.theta, ctx, p.policy, cfg)
-            return ep, estimators.discounted_returns(ep.rewards, cfg.discount)
+            return ep, episode_returns(ep, cfg)
 
         ep, returns = jax.lax.switch(method_index, [
             (lambda: pre) if s else (lambda p=p: own(p)) for p, s in zip(progs, side)])
@@ -568,7 +606,8 @@ def one_update(prog: Program, cfg: TrainConfig, state: TrainState, roll_out=None
 
     n_bv = sparse_gp.num_basis_vectors(gp)
     fresh = jnp.sum(gp.mask & (gp.timestamps == t))
-    successes = jax.vmap(lambda v, r: episode_success(prog, v, cfg, r))(eps.next_states, eps.rewards)
+    successes = jax.vmap(lambda v, r, e: episode_success(prog, v, cfg, r, e))(
+        eps.next_states, eps.rewards, eps.ends)
     eval_success, eval_reward, eval_return = evaluate(prog, key_eval, state.theta, cfg)
     record = UpdateRecord(
         mean_reward=_alive_mean(eps.rewards, eps.alive),
@@ -584,7 +623,7 @@ def one_update(prog: Program, cfg: TrainConfig, state: TrainState, roll_out=None
         success_rate=jnp.mean(successes.astype(prog.dtype)),
         eval_success_rate=eval_success,
         eval_reward=eval_reward,
-        mean_return=jnp.mean(jnp.sum(eps.rewards, axis=1)),
+        mean_return=_mean_episode_return(eps),
         eval_return=eval_return,
     )
     return TrainState(theta, opt_state, gp, state.kernel, key, t + 1), record
@@ -616,7 +655,7 @@ def collect_valid(prog: Program, key, cfg: TrainConfig):
     ctx = policy_context(cfg, gp, dummy_kernel)
     keys = jax.random.split(key, prog.config.hyperfit_episodes)
     eps = jax.vmap(lambda k: rollout(prog, k, theta, ctx, prog.behaviour, cfg))(keys)
-    returns = jax.vmap(estimators.discounted_returns, in_axes=(0, None))(eps.rewards, cfg.discount)
+    returns = jax.vmap(episode_returns, in_axes=(0, None))(eps, cfg)
     # every step's pair, held actions too (a held action's pair is its value for the rest of the
     # hold): the fit sees the exploration's actions at the cost in episodes of white noise
     xs = jax.vmap(lambda s, a: _features(prog, s, a))(eps.states, eps.actions).reshape(-1, d)

@@ -106,6 +106,10 @@ def test_exploration_flags_reach_the_config(monkeypatch):
     cli.main(["reproduce", "--preset", "tiny", "--methods", "guided_direction", "--compile-cache",
               "none", "--optimism", "2", "--hold-time", "0.01"])
     assert seen["overrides"] == {"optimism": 2.0, "hold_time": 0.01}
+    cli.main(["reproduce", "--preset", "tiny", "--methods", "reinforce", "--compile-cache", "none",
+              "--env", "gymnax:MountainCarContinuous-v0", "--episode-end", "restart"])
+    assert seen["overrides"] == {"env": "gymnax:MountainCarContinuous-v0",
+                                 "episode_end": "restart"}
 
 
 def test_import_does_not_touch_the_x64_flag():

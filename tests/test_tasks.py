@@ -150,6 +150,61 @@ def test_steps_after_an_early_end_are_masked():
     assert float(ret) == 21.0 and float(reward) == 1.0 and float(success) == 1.0
 
 
+def test_an_episode_that_ends_restarts_in_its_slots():
+    """`episode_end='restart'`: after each end the environment starts again, every slot has its
+    reward and score, each return-to-go stops at its episode's end (against a NumPy recursion),
+    the GP takes in pairs of the later episodes, the records count returns per episode, and the
+    evaluation still runs one episode."""
+    tasks.register(_falling_task())
+    h = 80
+    cfg = config.preset("tiny", method="gp_pg", env="test:falling", episode_length=h,
+                        eval_episodes=2, episode_end="restart", discount=0.9)
+    prog = train.make_program(cfg)
+    prior = train.GPPrior(train.kernels.make_kernel_params(jnp.ones(2), 1.0, 0.1), jnp.zeros(()))
+    state = train.initial_state(prog, jax.random.key(0), cfg, prior)
+    ctx = train.policy_context(cfg, state.gp, state.kernel)
+    eps = jax.jit(jax.vmap(lambda k: train.rollout(prog, k, state.theta, ctx, prog.policy, cfg)))(
+        jax.random.split(jax.random.key(1), 2))
+    assert eps.alive is None
+    ep = jax.tree_util.tree_map(lambda v: v[0], eps)
+    ends = np.asarray(ep.ends)
+    x, x_next = np.asarray(ep.states)[:, 0], np.asarray(ep.next_states)[:, 0]
+    assert ends.sum() >= 2  # each episode ends after about 21 steps
+    np.testing.assert_array_equal(ends, x_next > 1.025)  # an end exactly where the task ends it
+    starts = np.concatenate([[True], ends[:-1]])
+    np.testing.assert_array_equal(x[starts], 0.0)  # each episode starts from the reset
+    np.testing.assert_array_equal(np.asarray(ep.rewards), 1.0)  # every slot is a step
+    for leaf in jax.tree_util.tree_leaves(ep.scores):
+        assert np.all(np.any(np.asarray(leaf).reshape(h, -1) != 0, axis=1))
+    returns = np.asarray(train.episode_returns(ep, cfg))
+    expected, ret = np.zeros(h), 0.0
+    for t in range(h - 1, -1, -1):
+        ret = 1.0 + (0.0 if ends[t] else 0.9 * ret)
+        expected[t] = ret
+    np.testing.assert_allclose(returns, expected, rtol=1e-12)
+    gp, fired, _ = train._take_in(prog, cfg, state, state.gp, ep, jnp.asarray(returns))
+    assert int(fired) == 0
+    bvs = np.asarray(gp.basis_vectors)[np.asarray(gp.mask)][:, 0]
+    later = x[np.flatnonzero(ends)[0] + 2:]  # the second episode on, past its start
+    assert np.isclose(bvs[:, None], later[None, :], rtol=0, atol=1e-12).any()
+    # the records' mean return: per episode (the last one cut at the slots' end), not per slots
+    all_ends = np.asarray(eps.ends)
+    episodes = all_ends.sum() + (~all_ends[:, -1]).sum()
+    assert float(train._mean_episode_return(eps)) == pytest.approx(2 * h / episodes, rel=1e-12)
+    success, reward, ret = jax.jit(lambda k: train.evaluate(prog, k, state.theta, cfg))(
+        jax.random.key(2))
+    assert float(ret) == 21.0 and float(success) == 1.0  # one episode, as with masking
+    # a training episode succeeds when one of the episodes in its slots reaches the threshold
+    # (10, a reward of 1 per step), not their total
+    def success_of(ends):
+        return bool(train.episode_success(prog, ep.next_states, cfg, ep.rewards,
+                                          jnp.asarray(ends)))
+
+    assert not success_of(np.arange(h) % 5 == 4)  # sixteen episodes of 5 steps
+    assert success_of(np.arange(h) % 10 == 9)  # eight of 10
+    assert success_of(np.arange(h) == 4)  # one of 5, then one of 75 cut at the slots' end
+
+
 def test_discount_as_a_horizon_in_seconds():
     assert tasks.discount_for_horizon(0.5, 0.005) == pytest.approx(math.exp(-0.01))
     assert tasks.horizon_of_discount(0.99, 0.005) == pytest.approx(0.4975, rel=1e-3)
