@@ -425,12 +425,28 @@ def report(out: str) -> str:
     with open(os.path.join(out, "tuning.json")) as f:
         chosen = {m: r["chosen"]["scheme"] for m, r in json.load(f)["methods"].items()}
     table = {"seeds": meta["seeds"], "rows": [], "guidance": []}
+    # the run directories' curves (results.npz) are not kept in the repository: a run whose
+    # curves are not on this machine keeps its row of the table file, and the figure is drawn
+    # only when every run's curves are here
+    table_path = os.path.join(out, "heldout_table.json")
+    kept = {}
+    if os.path.exists(table_path):
+        with open(table_path) as f:
+            kept = {f"{r['method']}/{r['scheme']}": r for r in json.load(f)["rows"]}
+            with open(table_path) as g:
+                old_guidance = json.load(g)["guidance"]
+    have = {key: os.path.exists(os.path.join(out, "heldout", *key.split("/"), "results.npz"))
+            for key in meta["runs"]}
+    draw = all(have.values())
     finals = {}
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     order = [f"{m}/{x}" for m in METHODS for x in ABLATION[m]]
     for key in sorted(meta["runs"], key=order.index):
         run = meta["runs"][key]
         method, scheme = key.split("/")
+        if not have[key]:
+            table["rows"].append(kept[key])
+            continue
         steps, success, reward = _curves(out, method, scheme)
         smooth = S.smoothed(success, method)
         is_chosen = scheme == chosen[method]
@@ -474,7 +490,9 @@ def report(out: str) -> str:
                 m, h = stats_lib.t_interval(y)
                 ax.plot(steps, m, ls="--", label=f"{name} (brax, re-tuned)")
                 ax.fill_between(steps, m - h, m + h, alpha=0.15)
-    for scheme in ("ou_0.5s", "coloured_2", "hold_0.5s"):
+    if not draw:
+        table["guidance"] = old_guidance
+    for scheme in ("ou_0.5s", "coloured_2", "hold_0.5s") if draw else ():
         a, b = f"guided_variance/{scheme}", f"gp_pg/{scheme}"
         if a in finals and b in finals:
             p = stats_lib.probability_of_improvement(finals[a], finals[b])
@@ -489,7 +507,10 @@ def report(out: str) -> str:
     fig.suptitle(f"Swing-up, each method's chosen exploration: mean and 95% t-band over "
                  f"{len(meta['seeds'])} held-out seeds")
     fig.tight_layout()
-    fig.savefig(os.path.join(out, "exploration_swingup.png"), dpi=120)
+    if draw:
+        fig.savefig(os.path.join(out, "exploration_swingup.png"), dpi=120)
+    else:
+        log("the curves of some runs are not here: their rows kept, the figure not redrawn")
     plt.close(fig)
     checkpoints.atomic_write_text(os.path.join(out, "heldout_table.json"),
                                   json.dumps(table, indent=2))
