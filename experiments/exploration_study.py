@@ -429,12 +429,11 @@ def report(out: str) -> str:
     # curves are not on this machine keeps its row of the table file, and the figure is drawn
     # only when every run's curves are here
     table_path = os.path.join(out, "heldout_table.json")
-    kept = {}
+    previous = {"rows": [], "guidance": []}
     if os.path.exists(table_path):
         with open(table_path) as f:
-            kept = {f"{r['method']}/{r['scheme']}": r for r in json.load(f)["rows"]}
-            with open(table_path) as g:
-                old_guidance = json.load(g)["guidance"]
+            previous = json.load(f)
+    kept = {f"{r['method']}/{r['scheme']}": r for r in previous["rows"]}
     have = {key: os.path.exists(os.path.join(out, "heldout", *key.split("/"), "results.npz"))
             for key in meta["runs"]}
     draw = all(have.values())
@@ -491,7 +490,7 @@ def report(out: str) -> str:
                 ax.plot(steps, m, ls="--", label=f"{name} (brax, re-tuned)")
                 ax.fill_between(steps, m - h, m + h, alpha=0.15)
     if not draw:
-        table["guidance"] = old_guidance
+        table["guidance"] = previous["guidance"]
     for scheme in ("ou_0.5s", "coloured_2", "hold_0.5s") if draw else ():
         a, b = f"guided_variance/{scheme}", f"gp_pg/{scheme}"
         if a in finals and b in finals:
