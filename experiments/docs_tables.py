@@ -320,6 +320,21 @@ def _steps(v) -> str:
     return "–" if v is None else f"{v / 1000:.1f}k"
 
 
+BASELINES = ("ppo", "sac")
+
+
+def _rounded_up(budget: int, steps_run: dict[str, int], where: str = "") -> str:
+    """' (brax rounds it up to whole iterations: ppo ran 100,000 steps, sac 99,200)': the steps
+    brax's PPO and SAC ran for `budget`, as their evaluations recorded them, where they differ
+    from it; '' where none does."""
+    differ = [(name, int(steps)) for name, steps in steps_run.items() if int(steps) != budget]
+    if not differ:
+        return ""
+    ran = ", ".join(f"{name} {'ran ' if i == 0 else ''}{steps:,}{' steps' if i == 0 else ''}"
+                    for i, (name, steps) in enumerate(differ))
+    return f" (brax rounds it up to whole iterations: {ran}{where})"
+
+
 def standard_table(task: str) -> str:
     """`experiments/standard_tasks.py report`: the held-out comparison on one standard task."""
     path = os.path.join("standard", task, "heldout_table.json")
@@ -337,9 +352,11 @@ def standard_table(task: str) -> str:
                      + (f"{_steps(r['steps_used_median'])} | " if used else "")
                      + f"{r['wall_s']:.0f} s |")
     seeds = d["seeds"]
+    ran = {r["method"]: r["env_steps"] for r in d["rows"] if r["method"] in BASELINES}
     lines.append("")
     lines.append(f"Held-out seeds {seeds[0]}–{seeds[-1]}; a budget of {d['budget']:,} environment "
-                 f"steps of learning for every method, and {d['fit_steps']:,} more for the GP "
+                 f"steps of learning for every method{_rounded_up(d['budget'], ran)}, and "
+                 f"{d['fit_steps']:,} more for the GP "
                  "methods' hyperparameter fit (counted in their steps to threshold); threshold "
                  f"{d['threshold']:g}. Final return: the deterministic policy, last 10% of "
                  "evaluations per seed. Wall time: all seeds of a method, compilation included, on "
@@ -369,9 +386,15 @@ def standard_tuning_table(task: str) -> str:
             settings = ", ".join(f"{k}={fmt(v)}" for k, v in t["settings"].items())
             lines.append(f"| {name} | {settings} | {t['score']:.1f} | "
                          f"{'yes' if t['settings'] == r['chosen'] else ''} |")
+    # every baseline configuration of the grid runs as the held-out run does (same batch sizes)
+    heldout = os.path.join("standard", task, "heldout_table.json")
+    with open(os.path.join(RESULTS, heldout)) as f:
+        ran = {r["method"]: r["env_steps"] for r in json.load(f)["rows"]
+               if r["method"] in BASELINES and r["method"] in d["methods"]}
+    note = _rounded_up(d["env_steps"], ran)
     lines.append("")
-    lines.append(f"Tuning seeds {d['seeds']}, {d['env_steps']:,} environment steps per run. "
-                 + _source(path))
+    lines.append(f"Tuning seeds {d['seeds']}, {'a budget of ' if note else ''}{d['env_steps']:,} "
+                 f"environment steps per run{note}. " + _source(path, *([heldout] if note else [])))
     return "\n".join(lines)
 
 
@@ -433,10 +456,22 @@ def exploration_baseline_tuning_table() -> str:
             s = ", ".join(f"{k} {v:g}" for k, v in t["settings"].items())
             lines.append(f"| {name} | {s} | {t['success']:.2f} | {t['reward']:.3f} | "
                          f"{'yes' if t['settings'] == r['chosen'] else ''} |")
+    import numpy as np
+
+    # the steps run at the chosen settings, as the held-out runs' evaluations recorded them (the
+    # grid's other unroll lengths run other iterations)
+    heldout = {name: os.path.join("exploration", "heldout", f"{name}.npz") for name in d["methods"]}
+    ran = {}
+    for name, p in heldout.items():
+        with np.load(os.path.join(RESULTS, p)) as f:
+            ran[name] = int(f["steps"][-1])
+    note = _rounded_up(d["env_steps"], ran, where=", at the chosen settings")
     lines.append("")
-    lines.append(f"Tuning seeds {d['seeds']}, {d['env_steps']:,} environment steps per run; "
+    lines.append(f"Tuning seeds {d['seeds']}, {'a budget of ' if note else ''}{d['env_steps']:,} "
+                 f"environment steps per run{note}; "
                  "horizon in seconds (brax's discount exp(−0.005 s / horizon)); success and reward "
-                 "per step of the deterministic policy at the end of the run. " + _source(path))
+                 "per step of the deterministic policy at the end of the run. "
+                 + _source(path, *(heldout.values() if note else ())))
     return "\n".join(lines)
 
 

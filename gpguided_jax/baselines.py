@@ -10,6 +10,11 @@ every control step of the last `hold_time` seconds (1 s) of the episode. An epis
 through upright, or reaches it and falls, fails. `policy_success_rate` (= `swingup.success_rate`)
 applies it to fresh episodes of any policy.
 
+A budget of environment steps is brax's `num_timesteps`, which brax rounds up to whole iterations
+between evaluations (and, for SAC, counts the replay buffer's prefill in). `evaluation_steps` and
+`steps_run` give the steps brax 0.14.2 runs for a budget, `smallest_budget` the smallest budget it
+can run; the trainers here refuse a smaller one with `BudgetError` before brax compiles anything.
+
 PPO hyperparameters (`PPO_DEFAULTS`) are generic choices for a one-dimensional continuous-control
 task with tens of thousands to a few million steps, fixed before any run and never tuned on the
 reported seeds:
@@ -108,10 +113,184 @@ def float32_params(params: pendulum.PendulumParams) -> pendulum.PendulumParams:
     return jax.tree_util.tree_map(lambda x: np.asarray(x, np.float32), params)
 
 
-def ppo_steps_per_iteration(num_envs, unroll_length, batch_size, num_minibatches) -> int:
+def ppo_steps_per_iteration(num_envs, unroll_length, batch_size, num_minibatches,
+                            action_repeat=1) -> int:
     """Environment steps per PPO iteration (one batch of unrolls), as brax counts them."""
     del num_envs  # the batch is collected by num_envs in sequential unrolls
-    return batch_size * unroll_length * num_minibatches
+    return batch_size * unroll_length * num_minibatches * action_repeat
+
+
+class BudgetError(ValueError):
+    """A budget of environment steps that brax's trainer cannot run with the given settings.
+
+    Attributes:
+      smallest: the smallest budget it can run with them.
+    """
+
+    def __init__(self, message: str, smallest: int):
+        super().__init__(message)
+        self.smallest = int(smallest)
+
+
+def _schedule(algorithm: str, settings: dict | None) -> dict:
+    """The settings that fix brax's step schedule: `PPO_DEFAULTS` or `SAC_DEFAULTS` under
+    `settings`, brax's own defaults for the rest (action_repeat 1, num_resets_per_eval 0)."""
+    if algorithm == "ppo":
+        s = {**PPO_DEFAULTS, **(settings or {})}
+        keys = ("num_envs", "unroll_length", "batch_size", "num_minibatches")
+        extra = {"action_repeat": 1, "num_resets_per_eval": 0}
+    elif algorithm == "sac":
+        s = {**SAC_DEFAULTS, **(settings or {})}
+        keys = ("num_envs", "min_replay_size")
+        extra = {"action_repeat": 1}
+    else:
+        raise ValueError(f"unknown baseline {algorithm!r}; choose 'ppo' or 'sac'")
+    return {**{k: int(s[k]) for k in keys}, **{k: int(s.get(k, v)) for k, v in extra.items()}}
+
+
+def _sac_prefill_steps(sch: dict) -> int:
+    """Environment steps of SAC's replay-buffer prefill (brax counts them as training steps)."""
+    actor_steps = -(-sch["min_replay_size"] // sch["num_envs"])
+    return actor_steps * sch["action_repeat"] * sch["num_envs"]
+
+
+def smallest_budget(algorithm: str, settings: dict | None = None) -> int:
+    """The smallest budget of environment steps (brax's `num_timesteps`) that brax 0.14.2's
+    trainer runs and trains with.
+
+    PPO: 1 (at 0 brax returns the initial policy without a step or an evaluation). SAC: one more
+    than the steps of its replay-buffer prefill, ceil(min_replay_size / num_envs) * num_envs *
+    action_repeat: brax refuses a budget up to min_replay_size, asserts that the budget covers
+    the prefill, and at exactly the prefill makes no gradient step.
+
+    Args:
+      algorithm: 'ppo' or 'sac'.
+      settings: trainer arguments over `PPO_DEFAULTS` / `SAC_DEFAULTS` (as `train_on_task`'s).
+    """
+    sch = _schedule(algorithm, settings)
+    if algorithm == "ppo":
+        return 1
+    return max(sch["min_replay_size"], _sac_prefill_steps(sch)) + 1
+
+
+def check_budget(algorithm: str, budget: int, settings: dict | None = None) -> None:
+    """Raises `BudgetError` (one line, naming the smallest budget) if brax cannot run `budget`.
+
+    Args:
+      algorithm: 'ppo' or 'sac'.
+      budget: environment steps asked for (brax's `num_timesteps`).
+      settings: trainer arguments over `PPO_DEFAULTS` / `SAC_DEFAULTS`.
+    """
+    smallest = smallest_budget(algorithm, settings)
+    if int(budget) >= smallest:
+        return
+    if algorithm == "ppo":
+        raise BudgetError(f"brax's PPO needs a budget of at least 1 environment step, got "
+                          f"{int(budget)}", smallest)
+    sch = _schedule(algorithm, settings)
+    raise BudgetError(
+        f"brax's SAC cannot run a budget of {int(budget)} environment steps: it first fills its "
+        f"replay buffer with {_sac_prefill_steps(sch)} steps (min_replay_size "
+        f"{sch['min_replay_size']} from {sch['num_envs']} environments) and trains only on the "
+        f"steps beyond them; the smallest budget is {smallest}", smallest)
+
+
+def evaluation_steps(algorithm: str, budget: int, num_evals: int,
+                     settings: dict | None = None) -> np.ndarray:
+    """The environment steps at which brax 0.14.2's trainer evaluates (the steps its
+    `progress_fn` receives), the initial policy's 0 first; the last is the steps run.
+
+    brax counts every environment step of every device, so the count does not depend on the
+    device count. With n = max(num_evals - 1, 1) evaluation intervals:
+      - PPO (`ppo/train.py`): an iteration is E = batch_size * unroll_length * num_minibatches *
+        action_repeat steps; an interval is max(num_resets_per_eval, 1) epochs of
+        k = ceil(budget / (n * E * max(num_resets_per_eval, 1))) iterations, so evaluation i is
+        at i * k * E * max(num_resets_per_eval, 1), and the run ends at n times that.
+      - SAC (`sac/train.py`): the replay-buffer prefill P = ceil(min_replay_size / num_envs) *
+        num_envs * action_repeat counts as steps; an interval is
+        k = ceil((budget - P) / (n * num_envs * action_repeat)) actor steps of num_envs *
+        action_repeat each, so evaluation i is at P + i * k * num_envs * action_repeat.
+    The initial evaluation (step 0) takes place when num_evals > 1.
+
+    Args:
+      algorithm: 'ppo' or 'sac'.
+      budget: environment steps asked for (brax's `num_timesteps`).
+      num_evals: brax's `num_evals` (>= 1).
+      settings: trainer arguments over `PPO_DEFAULTS` / `SAC_DEFAULTS`.
+
+    Returns:
+      (num_evals,) int64 steps (one fewer without the initial evaluation).
+
+    Raises:
+      BudgetError: brax cannot run `budget` (`check_budget`).
+    """
+    if num_evals < 1:
+        raise ValueError(f"num_evals must be >= 1, got {num_evals}")
+    check_budget(algorithm, budget, settings)
+    sch = _schedule(algorithm, settings)
+    n = max(num_evals - 1, 1)
+    if algorithm == "ppo":
+        resets = max(sch["num_resets_per_eval"], 1)
+        per_iteration = ppo_steps_per_iteration(sch["num_envs"], sch["unroll_length"],
+                                                sch["batch_size"], sch["num_minibatches"],
+                                                sch["action_repeat"])
+        k = -(-int(budget) // (n * per_iteration * resets))
+        start, interval = 0, k * per_iteration * resets
+    else:
+        per_actor_step = sch["num_envs"] * sch["action_repeat"]
+        start = _sac_prefill_steps(sch)
+        k = -(-(int(budget) - start) // (n * per_actor_step))
+        interval = k * per_actor_step
+    steps = start + interval * np.arange(1, n + 1, dtype=np.int64)
+    return np.concatenate([[0], steps]) if num_evals > 1 else steps
+
+
+def steps_run(algorithm: str, budget: int, num_evals: int, settings: dict | None = None) -> int:
+    """Environment steps brax 0.14.2's trainer runs for `budget` (`evaluation_steps`' last):
+    whole iterations, so at least `budget`.
+
+    Args:
+      algorithm: 'ppo' or 'sac'.
+      budget: environment steps asked for (brax's `num_timesteps`).
+      num_evals: brax's `num_evals`.
+      settings: trainer arguments over `PPO_DEFAULTS` / `SAC_DEFAULTS`.
+
+    Raises:
+      BudgetError: brax cannot run `budget`.
+    """
+    return int(evaluation_steps(algorithm, budget, num_evals, settings)[-1])
+
+
+def budget_note(algorithm: str, budget: int, num_evals: int,
+                settings: dict | None = None) -> str | None:
+    """One line on how brax rounds `budget` up to whole iterations; None if it runs exactly it.
+
+    Args:
+      algorithm: 'ppo' or 'sac'.
+      budget: environment steps asked for (brax's `num_timesteps`).
+      num_evals: brax's `num_evals`.
+      settings: trainer arguments over `PPO_DEFAULTS` / `SAC_DEFAULTS`.
+    """
+    steps = evaluation_steps(algorithm, budget, num_evals, settings)
+    run = int(steps[-1])
+    if run == int(budget):
+        return None
+    sch = _schedule(algorithm, settings)
+    n = max(num_evals - 1, 1)
+    interval = int(steps[-1] - steps[-2]) if len(steps) > 1 else run
+    if algorithm == "ppo":
+        per_iteration = ppo_steps_per_iteration(sch["num_envs"], sch["unroll_length"],
+                                                sch["batch_size"], sch["num_minibatches"],
+                                                sch["action_repeat"])
+        how = (f"brax's PPO runs whole iterations of {per_iteration} environment steps, "
+               f"{interval // per_iteration} in each of its {n} evaluation intervals")
+    else:
+        k = interval // (sch["num_envs"] * sch["action_repeat"])
+        repeat = f" (action_repeat {sch['action_repeat']})" if sch["action_repeat"] != 1 else ""
+        how = (f"brax's SAC fills its replay buffer with {_sac_prefill_steps(sch)} environment "
+               f"steps, then steps its {sch['num_envs']} environments{repeat} "
+               f"{'once' if k == 1 else f'{k} times'} in each of its {n} evaluation intervals")
+    return f"{how}: a budget of {int(budget)} runs {run} steps"
 
 
 def train_ppo(
@@ -127,11 +306,12 @@ def train_ppo(
     """brax PPO on `PendulumEnv(pendulum_params)`; returns the learning curve and wall time.
 
     brax runs whole PPO iterations: the steps done are `num_timesteps` rounded up to a multiple of
-    (num_evals - 1) * steps per iteration, and `env_steps` reports the steps actually done.
+    (num_evals - 1) * steps per iteration (`evaluation_steps`), and `env_steps` reports the steps
+    actually done.
 
     Args:
       pendulum_params: physics, reward noise and start-state distribution (any float dtype).
-      num_timesteps: environment-step budget.
+      num_timesteps: environment-step budget (>= 1).
       episode_length: steps per episode (brax truncates; the value is bootstrapped at truncation).
       seed: PPO seed (initialisation, environments, evaluation).
       num_evals: evaluations including the initial one (>= 2).
@@ -144,6 +324,7 @@ def train_ppo(
     if num_evals < 2:
         raise ValueError(f"num_evals must be >= 2, got {num_evals}")
     kwargs = {**PPO_DEFAULTS, **ppo_kwargs}
+    check_budget("ppo", num_timesteps, kwargs)
     kwargs.setdefault("reward_scaling", 1.0 - kwargs["discounting"])
     network_factory = functools.partial(
         ppo_networks.make_ppo_networks,
@@ -166,13 +347,16 @@ def train_sac(
 ) -> PPOResult:
     """brax SAC (`brax.training.agents.sac.train`) on `PendulumEnv(pendulum_params)`, as
     `train_ppo`. SAC tunes its entropy temperature itself (target entropy -action_size); the reward
-    scale sets how much the reward weighs against that entropy. Hyperparameters: `SAC_DEFAULTS`."""
+    scale sets how much the reward weighs against that entropy. Hyperparameters: `SAC_DEFAULTS`.
+    The budget must exceed the replay buffer's prefill (`smallest_budget`; `BudgetError`
+    otherwise, before brax compiles anything), and brax rounds it up (`evaluation_steps`)."""
     from brax.training.agents.sac import networks as sac_networks
     from brax.training.agents.sac import train as sac
 
     if num_evals < 2:
         raise ValueError(f"num_evals must be >= 2, got {num_evals}")
     kwargs = {**SAC_DEFAULTS, **sac_kwargs}
+    check_budget("sac", num_timesteps, kwargs)
     network_factory = functools.partial(sac_networks.make_sac_networks,
                                         hidden_layer_sizes=tuple(hidden_layers))
     return _run_brax(sac.train, pendulum_params, num_timesteps, episode_length, seed,
@@ -234,7 +418,9 @@ def train_on_task(algorithm: str, env: str, num_timesteps: int, episode_length: 
     Args:
       algorithm: 'ppo' or 'sac'.
       env: the task's name.
-      num_timesteps: environment-step budget (brax rounds it up to whole iterations).
+      num_timesteps: environment-step budget: brax rounds it up to whole iterations
+        (`evaluation_steps`), and refuses one it cannot run (`BudgetError`, raised here before
+        brax compiles anything).
       episode_length: steps per episode (brax's `EpisodeWrapper` truncates there).
       seed: the trainer's seed.
       num_evals: evaluations, the initial one included (>= 2).
@@ -260,6 +446,7 @@ def train_on_task(algorithm: str, env: str, num_timesteps: int, episode_length: 
         raise ValueError(f"unknown baseline {algorithm!r}; choose 'ppo' or 'sac'")
     if num_evals < 2:
         raise ValueError(f"num_evals must be >= 2, got {num_evals}")
+    check_budget(algorithm, num_timesteps, kwargs)
     steps, returns = [], []
 
     def progress(step, metrics):
@@ -318,29 +505,30 @@ def summarise_returns(env_steps: np.ndarray, returns: np.ndarray, threshold: flo
     return out
 
 
-def run_preset(algorithm: str, preset: str, seeds, *, env: str | None = None,
-               num_timesteps: int | None = None, num_evals: int = 26,
-               hidden_layers: tuple = HIDDEN_LAYERS, overrides: dict | None = None,
-               progress=None) -> dict:
-    """brax's `algorithm` on a standard task with a preset's budget and tuned settings, one run
-    per seed (`gpguided baseline`).
+def plan_preset(algorithm: str, preset: str, *, env: str | None = None,
+                num_timesteps: int | None = None, num_evals: int = 26,
+                overrides: dict | None = None) -> dict:
+    """What `run_preset` would run, checked without compiling anything: the task, the settings and
+    the budget, refused if brax cannot run them.
 
     Args:
       algorithm: 'ppo' or 'sac'.
       preset: a preset of `config.PRESETS`; its environment, episode length and budget of
         environment steps (updates x episodes x episode length) apply, and its tuned settings
         (`preset_settings`).
-      seeds: the trainer's seeds.
       env: another task than the preset's ('gymnax:<id>' or 'brax:<name>').
       num_timesteps: another budget of environment steps.
       num_evals: evaluations, the initial policy's included.
-      hidden_layers: hidden sizes of every MLP.
       overrides: further trainer arguments, over the tuned ones.
-      progress: called with a line after each seed.
 
     Returns:
-      A dict: algorithm, preset, env, settings, num_timesteps, seeds, env_steps (E,), returns
-      (seeds, E), wall_s per seed, and `summarise_returns`' summary.
+      A dict: env, episode_length, threshold (the task's solved-at return), settings (the trainer
+      arguments over `PPO_DEFAULTS` / `SAC_DEFAULTS`), budget (brax's `num_timesteps`) and note
+      (`budget_note`: how brax rounds the budget up; None if it runs exactly the budget).
+
+    Raises:
+      BudgetError: brax cannot run the budget with these settings.
+      ValueError: another argument that cannot run.
     """
     from gpguided_jax import config, tasks
 
@@ -357,9 +545,50 @@ def run_preset(algorithm: str, preset: str, seeds, *, env: str | None = None,
     task = tasks.make_task(cfg.env)
     settings = {**preset_settings(preset, algorithm, task.dt), **(overrides or {})}
     budget = int(num_timesteps or cfg.num_updates * cfg.episodes_per_update * cfg.episode_length)
+    return dict(env=cfg.env, episode_length=int(cfg.episode_length), threshold=task.threshold,
+                settings=settings, budget=budget,
+                note=budget_note(algorithm, budget, num_evals, settings))
+
+
+def run_preset(algorithm: str, preset: str, seeds, *, env: str | None = None,
+               num_timesteps: int | None = None, num_evals: int = 26,
+               hidden_layers: tuple = HIDDEN_LAYERS, overrides: dict | None = None,
+               progress=None) -> dict:
+    """brax's `algorithm` on a standard task with a preset's budget and tuned settings, one run
+    per seed (`gpguided baseline`), after `plan_preset`'s checks.
+
+    Args:
+      algorithm: 'ppo' or 'sac'.
+      preset: a preset of `config.PRESETS`; its environment, episode length and budget of
+        environment steps (updates x episodes x episode length) apply, and its tuned settings
+        (`preset_settings`).
+      seeds: the trainer's seeds.
+      env: another task than the preset's ('gymnax:<id>' or 'brax:<name>').
+      num_timesteps: another budget of environment steps.
+      num_evals: evaluations, the initial policy's included.
+      hidden_layers: hidden sizes of every MLP.
+      overrides: further trainer arguments, over the tuned ones.
+      progress: called with a line before the first run if brax rounds the budget up
+        (`budget_note`), and after each seed.
+
+    Returns:
+      A dict: algorithm, preset, env, settings, budget (the environment steps asked for, brax's
+      `num_timesteps`), steps_run (the steps brax ran, as its evaluations report them: the
+      budget rounded up to whole iterations), seeds, env_steps (E,), returns (seeds, E), wall_s
+      per seed, and `summarise_returns`' summary.
+
+    Raises:
+      BudgetError: brax cannot run the budget with these settings (before any run).
+      ValueError: another argument that cannot run.
+    """
+    plan = plan_preset(algorithm, preset, env=env, num_timesteps=num_timesteps,
+                       num_evals=num_evals, overrides=overrides)
+    settings, budget = plan["settings"], plan["budget"]
+    if plan["note"] is not None and progress is not None:
+        progress(f"[{algorithm}] {plan['note']}")
     runs = []
     for i, seed in enumerate(seeds):
-        r = train_on_task(algorithm, cfg.env, budget, cfg.episode_length, seed,
+        r = train_on_task(algorithm, plan["env"], budget, plan["episode_length"], seed,
                           num_evals=num_evals, hidden_layers=tuple(hidden_layers), **settings)
         runs.append(r)
         if progress is not None:
@@ -367,11 +596,11 @@ def run_preset(algorithm: str, preset: str, seeds, *, env: str | None = None,
                      f"{float(r.episode_return[-1]):.1f} after {int(r.env_steps[-1])} steps, "
                      f"{r.wall_time:.0f}s")
     returns = np.stack([r.episode_return for r in runs])
-    return dict(algorithm=algorithm, preset=preset, env=cfg.env, settings=settings,
-                num_timesteps=budget, seeds=[int(s) for s in seeds],
+    return dict(algorithm=algorithm, preset=preset, env=plan["env"], settings=settings,
+                budget=budget, steps_run=int(runs[0].env_steps[-1]), seeds=[int(s) for s in seeds],
                 env_steps=np.asarray(runs[0].env_steps), returns=returns,
                 wall_s=[float(r.wall_time) for r in runs],
-                summary=summarise_returns(runs[0].env_steps, returns, task.threshold))
+                summary=summarise_returns(runs[0].env_steps, returns, plan["threshold"]))
 
 
 # Aliases of the swing-up's success criterion and rates (`gpguided_jax.swingup`).
@@ -430,6 +659,7 @@ def matched_budget_value(
 
 
 __all__ = [
+    "BudgetError",
     "PPO_DEFAULTS",
     "SAC_DEFAULTS",
     "SACResult",
@@ -441,9 +671,16 @@ __all__ = [
     "ppo_policy_fn",
     "ppo_steps_per_iteration",
     "ppo_success_rate",
+    "smallest_budget",
+    "steps_run",
     "success_flags",
     "swingup_success",
     "train_ppo",
     "TaskResult",
+    "budget_note",
+    "plan_preset",
+    "run_preset",
+    "check_budget",
+    "evaluation_steps",
     "train_on_task",
 ]

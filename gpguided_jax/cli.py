@@ -194,7 +194,6 @@ def _cmd_bench(args) -> int:
 
 def _cmd_baseline(args) -> int:
     runtime.set_cpu_devices(None)
-    runtime.set_compile_cache(args.compile_cache)
     import json
 
     import numpy as np
@@ -205,14 +204,20 @@ def _cmd_baseline(args) -> int:
         raise SystemExit(f"gpguided baseline: error: --out {args.out} exists and is not a "
                          "directory")
     seeds = list(range(args.seed_start, args.seed_start + args.seeds))
-    try:
-        res = baselines.run_preset(args.algorithm, args.preset, seeds, env=args.env,
-                                   num_timesteps=args.steps, num_evals=args.evals,
+    run = dict(env=args.env, num_timesteps=args.steps, num_evals=args.evals,
+               overrides=_parse_overrides(args.set))
+    try:  # a run brax cannot do is refused in one line on stderr before anything compiles
+        baselines.plan_preset(args.algorithm, args.preset, **run)
+        runtime.set_compile_cache(args.compile_cache)
+        res = baselines.run_preset(args.algorithm, args.preset, seeds, **run,
                                    hidden_layers=tuple(args.hidden),
-                                   overrides=_parse_overrides(args.set),
                                    progress=lambda line: print(line, file=sys.stderr, flush=True))
+    except baselines.BudgetError as e:
+        print(f"gpguided baseline: error: {e} (--steps {e.smallest} or more)", file=sys.stderr)
+        return 2
     except ValueError as e:
-        raise SystemExit(f"gpguided baseline: error: {e}") from None
+        print(f"gpguided baseline: error: {e}", file=sys.stderr)
+        return 2
     os.makedirs(args.out, exist_ok=True)
     stem = os.path.join(args.out, f"baseline_{args.algorithm}")
     np.savez(stem + ".npz", seeds=np.asarray(seeds), env_steps=res["env_steps"],
@@ -221,8 +226,9 @@ def _cmd_baseline(args) -> int:
     checkpoints.atomic_write_text(stem + ".json", json.dumps(meta, indent=2))
     s = res["summary"]
     seeds_word = "seed" if s["seeds"] == 1 else "seeds"
-    line = (f"{args.algorithm} on {res['env']} ({res['num_timesteps']} steps, {s['seeds']} "
-            f"{seeds_word}): "
+    budget = "" if res["steps_run"] == res["budget"] else f" for a budget of {res['budget']}"
+    line = (f"{args.algorithm} on {res['env']} ({res['steps_run']} steps run{budget}, "
+            f"{s['seeds']} {seeds_word}): "
             f"final return IQM {s['final_return_iqm']:.1f} [{s['ci95'][0]:.1f}, "
             f"{s['ci95'][1]:.1f}]")
     if s["threshold"] is not None:
@@ -407,9 +413,12 @@ def _add_baseline(sub) -> None:
         "run per seed, with the preset's episode length and budget of environment steps (the "
         "methods' budget) and, for "
         f"{', '.join(sorted(BASELINE_PRESETS))}, its tuned settings; the deterministic policy is "
-        "evaluated --evals times. Writes baseline_<algorithm>.npz (returns per seed and "
-        "evaluation) and .json (settings, wall time, final return IQM and steps to the task's "
-        "threshold) to --out.",
+        "evaluated --evals times. brax runs whole iterations between evaluations, so it may run "
+        "more steps than the budget: the command says so and reports the steps run; a budget "
+        "too small for brax (SAC's replay buffer prefill, min_replay_size steps, must leave "
+        "steps to train on) is refused, naming the smallest. Writes baseline_<algorithm>.npz "
+        "(returns per seed and evaluation) and .json (settings, budget, steps run, wall time, "
+        "final return IQM and steps to the task's threshold) to --out.",
     )
     bl.add_argument("algorithm", choices=("ppo", "sac"))
     bl.add_argument("--preset", default="pendulum-v1", choices=sorted(PRESETS),
@@ -421,7 +430,7 @@ def _add_baseline(sub) -> None:
                     help="first seed (the presets were tuned on seeds below 1000)")
     bl.add_argument("--steps", type=positive_int, default=None,
                     help="budget of environment steps (default: the preset's, updates x "
-                    "episodes x episode length)")
+                    "episodes x episode length); brax rounds it up to whole iterations")
     bl.add_argument("--evals", type=positive_int, default=26,
                     help="evaluations, the initial policy's included (at least 2)")
     bl.add_argument("--hidden", type=positive_int, nargs="+", default=[64, 64],

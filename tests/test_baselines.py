@@ -84,22 +84,14 @@ def test_train_ppo_tiny_budget_returns_finite_curve():
     """brax's own PPO trainer (`ppo.train`) on `brax_env.PendulumEnv`, through `train_ppo`: the
     environment's brax interface end to end (it was a test of its own in test_brax_env.py)."""
     params = pendulum.make_params(start_mean=(math.pi - 0.5, 0.0), start_std=(0.1, 0.1))
-    per_iter = baselines.ppo_steps_per_iteration(4, 10, 4, 2)
-    result = baselines.train_ppo(
-        params,
-        2 * per_iter,
-        20,
-        seed=0,
-        num_evals=3,
-        num_envs=4,
-        unroll_length=10,
-        batch_size=4,
-        num_minibatches=2,
-        num_updates_per_batch=1,
-        num_eval_envs=4,
-        hidden_layers=(8,),
-    )
-    np.testing.assert_array_equal(result.env_steps, [0, per_iter, 2 * per_iter])
+    schedule = dict(num_envs=4, unroll_length=10, batch_size=4, num_minibatches=2)
+    result = baselines.train_ppo(params, 161, 20, seed=0, num_evals=3, num_updates_per_batch=1,
+                                 num_eval_envs=4, hidden_layers=(8,), **schedule)
+    # an iteration is 4 x 2 unrolls of 10 steps = 80 steps; 2 intervals need ceil(161 / 160) = 2
+    # iterations each: brax evaluates at 160 and 320 steps, and ran 320 for a budget of 161
+    np.testing.assert_array_equal(result.env_steps, [0, 160, 320])
+    np.testing.assert_array_equal(baselines.evaluation_steps("ppo", 161, 3, schedule),
+                                  result.env_steps)
     assert result.reward_per_step.shape == (3,)
     assert np.all(np.isfinite(result.reward_per_step)) and np.all(result.reward_per_step < 0.5)
     assert result.wall_time > 0
@@ -113,10 +105,15 @@ def test_train_ppo_tiny_budget_returns_finite_curve():
 
 def test_train_sac_tiny_budget_returns_finite_curve_and_success():
     params = pendulum.make_params(start_mean=(0.0, 0.0), start_std=(0.1, 0.1))
-    result = baselines.train_sac(params, 400, 250, seed=0, num_evals=2, num_envs=4,
-                                 batch_size=16, min_replay_size=64, max_replay_size=1000,
+    result = baselines.train_sac(params, 401, 250, seed=0, num_evals=2, num_envs=4,
+                                 batch_size=16, min_replay_size=62, max_replay_size=1000,
                                  num_eval_envs=4, hidden_layers=(8,))
-    assert result.env_steps[0] == 0 and result.env_steps[-1] >= 400
+    # prefill: ceil(62 / 4) = 16 steps of 4 environments = 64; then ceil((401 - 64) / 4) = 85
+    # steps of 4 in the one interval: 64 + 340 = 404
+    np.testing.assert_array_equal(result.env_steps, [0, 404])
+    np.testing.assert_array_equal(
+        baselines.evaluation_steps("sac", 401, 2, dict(num_envs=4, min_replay_size=62)),
+        result.env_steps)
     assert np.all(np.isfinite(result.reward_per_step))
     # hanging down, 1.25 s episodes: nothing is upright for the last second
     np.testing.assert_array_equal(result.success_rate, np.zeros(2))
@@ -174,13 +171,160 @@ def test_the_baseline_presets_hold_the_tuned_settings(monkeypatch):
     (["sac", "--preset", "paper"], "the paper's pendulum"),
     (["sac", "--env", "gymnax:CartPole-v1"], "discrete action"),
     (["ppo", "--evals", "1"], "num_evals must be >= 2"),
+    # tiny preset: 6 updates x 2 episodes x 20 steps = 240, below SAC's 2000-step prefill
+    (["sac", "--preset", "tiny", "--env", "gymnax:Pendulum-v1"],
+     "a budget of 240 environment steps: it first fills its replay buffer with 2000 steps "
+     "(min_replay_size 2000 from 16 environments) and trains only on the steps beyond them; the "
+     "smallest budget is 2001 (--steps 2001 or more)"),
+    (["sac", "--preset", "tiny", "--env", "gymnax:Pendulum-v1", "--steps", "2000"],
+     "the smallest budget is 2001"),
+    # ceil(66 / 4) = 17 steps of 4 environments fill the buffer: 68 steps, so 69 at least
+    (["sac", "--preset", "tiny", "--env", "gymnax:Pendulum-v1", "--steps", "68", "--set",
+      "num_envs=4", "min_replay_size=66"], "with 68 steps (min_replay_size 66 from 4 "
+     "environments) and trains only on the steps beyond them; the smallest budget is 69"),
 ])
-def test_bad_baseline_runs_are_refused_in_one_line(args, message, tmp_path):
+def test_bad_baseline_runs_are_refused_in_one_line(args, message, tmp_path, capsys, monkeypatch):
+    """One line on stderr, exit status 2, before anything is set up or compiled: no compilation
+    cache, no training, no output directory."""
     from gpguided_jax import cli
 
-    with pytest.raises(SystemExit) as e:
-        cli.main(["baseline", *args, "--out", str(tmp_path), "--compile-cache", "none"])
-    assert message in str(e.value) and "\n" not in str(e.value)
+    def no_run(*args, **kwargs):
+        raise AssertionError("a refused run started")
+
+    monkeypatch.setattr(baselines, "train_on_task", no_run)
+    monkeypatch.setattr(cli.runtime, "set_compile_cache", no_run)
+    out = tmp_path / "out"
+    assert cli.main(["baseline", *args, "--out", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and not out.exists()
+    assert captured.err.startswith("gpguided baseline: error: ") and message in captured.err
+    assert captured.err.count("\n") == 1 and captured.err.endswith("\n")
+
+
+def test_a_budget_brax_rounds_up_is_reported_as_run(tmp_path, capsys, monkeypatch):
+    """PPO on the tiny preset: brax runs whole iterations of 16 x 5 unrolls of 25 steps = 2000
+    steps, at least one per each of the 25 intervals between 26 evaluations, so a budget of 240
+    runs 50,000 steps. The command passes brax the budget and the settings unchanged, says so
+    before the runs, and reports (line and JSON) the steps that brax's evaluations report (here a
+    stand-in for brax that returns them)."""
+    import json
+
+    from gpguided_jax import cli
+
+    calls = []
+
+    def fake_brax(algorithm, env, num_timesteps, episode_length, seed, **kwargs):
+        calls.append((num_timesteps, kwargs))
+        steps = 2000 * np.arange(26)
+        return baselines.TaskResult(steps, -1000.0 + steps / 100.0, 1.0)
+
+    monkeypatch.setattr(baselines, "train_on_task", fake_brax)
+    out = tmp_path / "bl"
+    assert cli.main(["baseline", "ppo", "--preset", "tiny", "--env", "gymnax:Pendulum-v1",
+                     "--seeds", "2", "--out", str(out), "--compile-cache", "none"]) == 0
+    assert [c[0] for c in calls] == [240, 240] and calls[0][1]["num_evals"] == 26
+    assert not set(calls[0][1]) & {"num_envs", "unroll_length", "batch_size", "num_minibatches"}
+    captured = capsys.readouterr()
+    assert ("[ppo] brax's PPO runs whole iterations of 2000 environment steps, 1 in each of its 25 "
+            "evaluation intervals: a budget of 240 runs 50000 steps\n") in captured.err
+    assert "ppo on gymnax:Pendulum-v1 (50000 steps run for a budget of 240, 2 seeds)" in captured.out
+    meta = json.loads((out / "baseline_ppo.json").read_text())
+    assert meta["budget"] == 240 and meta["steps_run"] == 50000 and "num_timesteps" not in meta
+
+
+# ------------------------------------------------------------------------------------------------
+# the steps brax runs for a budget, by hand from brax 0.14.2's ppo/train.py and sac/train.py
+# ------------------------------------------------------------------------------------------------
+
+
+def test_ppo_steps_against_a_hand_computation():
+    # defaults: an iteration is 16 x 5 unrolls of 25 steps = 2000; 26 evaluations, 25 intervals
+    np.testing.assert_array_equal(baselines.evaluation_steps("ppo", 240, 26),
+                                  [2000 * i for i in range(26)])
+    # ceil(budget / (25 x 2000)) iterations per interval
+    for budget, run in [(1, 50_000), (50_000, 50_000), (50_001, 100_000), (99_000, 100_000),
+                        (149_850, 150_000)]:
+        assert baselines.steps_run("ppo", budget, 26) == run, budget
+    # 4 x 2 unrolls of 10 steps, each action repeated twice: 160 steps an iteration; an interval
+    # is 3 epochs (num_resets_per_eval) of ceil(1000 / (2 x 160 x 3)) = 2 iterations = 960 steps
+    settings = dict(num_envs=4, unroll_length=10, batch_size=4, num_minibatches=2,
+                    action_repeat=2, num_resets_per_eval=3)
+    np.testing.assert_array_equal(baselines.evaluation_steps("ppo", 1000, 3, settings),
+                                  [0, 960, 1920])
+    # one evaluation: no initial one, one interval of ceil(3000 / 2000) = 2 iterations
+    np.testing.assert_array_equal(baselines.evaluation_steps("ppo", 3000, 1), [4000])
+    assert baselines.smallest_budget("ppo") == 1
+    with pytest.raises(baselines.BudgetError, match="at least 1"):
+        baselines.steps_run("ppo", 0, 26)
+    assert baselines.budget_note("ppo", 50_000, 26) is None
+    assert baselines.budget_note("ppo", 99_000, 26) == (
+        "brax's PPO runs whole iterations of 2000 environment steps, 2 in each of its 25 "
+        "evaluation intervals: a budget of 99000 runs 100000 steps")
+
+
+def test_sac_steps_against_a_hand_computation():
+    # defaults: 16 environments; the prefill, ceil(2000 / 16) = 125 steps of 16 = 2000, counts
+    assert baselines.smallest_budget("sac") == 2001
+    steps = baselines.evaluation_steps("sac", 2001, 26)  # ceil(1 / (25 x 16)) = 1 step a interval
+    np.testing.assert_array_equal(steps, [0] + [2000 + 16 * i for i in range(1, 26)])
+    # ceil((99,000 - 2000) / 400) = 243 steps of 16 per interval: 2000 + 25 x 243 x 16
+    assert baselines.steps_run("sac", 99_000, 26) == 99_200
+    assert baselines.steps_run("sac", 100_000, 26) == 100_000
+    # 21 evaluations: ceil(268,000 / 320) = 838 steps of 16 per interval
+    assert baselines.steps_run("sac", 270_000, 21) == 2000 + 20 * 838 * 16
+    # 3 environments, actions repeated twice: the prefill is ceil(10 / 3) = 4 steps of 3 x 2
+    settings = dict(num_envs=3, min_replay_size=10, action_repeat=2)
+    assert baselines.smallest_budget("sac", settings) == 25
+    np.testing.assert_array_equal(baselines.evaluation_steps("sac", 25, 2, settings), [0, 30])
+    np.testing.assert_array_equal(baselines.evaluation_steps("sac", 100, 3, settings),
+                                  [0, 24 + 42, 24 + 84])  # ceil(76 / 12) = 7 steps of 6
+    for budget in (10, 11, 24):  # brax: refused / assertion fails / no gradient step
+        with pytest.raises(baselines.BudgetError, match="the smallest budget is 25$") as e:
+            baselines.check_budget("sac", budget, settings)
+        assert e.value.smallest == 25
+    baselines.check_budget("sac", 25, settings)
+    assert baselines.budget_note("sac", 2001, 26) == (
+        "brax's SAC fills its replay buffer with 2000 environment steps, then steps its 16 "
+        "environments once in each of its 25 evaluation intervals: a budget of 2001 runs 2400 "
+        "steps")
+
+
+def test_the_steps_run_agree_with_what_brax_recorded_in_the_studies():
+    """The committed study results hold brax's own step counts (its evaluations' steps) of full
+    runs; the formulas give them from the budget, for every configuration the tunings tried
+    (none of their grids changes the batch sizes), and the tables take them from there."""
+    import json
+    import os
+
+    from conftest import ROOT
+
+    results = os.path.join(ROOT, "docs", "results")
+    for task in ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
+                 "inverted-double-pendulum"):
+        with open(os.path.join(results, "standard", task, "heldout_table.json")) as f:
+            table = json.load(f)
+        with open(os.path.join(results, "standard", task, "tuning.json")) as f:
+            tuning = json.load(f)
+        for name in ("ppo", "sac"):
+            with np.load(os.path.join(results, "standard", task, "heldout", f"{name}.npz")) as f:
+                recorded = f["steps"]
+            row = next(r for r in table["rows"] if r["method"] == name)
+            assert row["env_steps"] == recorded[-1]
+            configurations = [t["settings"] for t in tuning["methods"][name]["tried"]]
+            for settings in configurations:
+                np.testing.assert_array_equal(
+                    baselines.evaluation_steps(name, tuning["env_steps"], len(recorded),
+                                               settings), recorded, err_msg=f"{task} {name}")
+    with open(os.path.join(results, "exploration", "baselines.json")) as f:
+        runs = json.load(f)["runs"]
+    with open(os.path.join(results, "exploration", "baseline_tuning.json")) as f:
+        budget = json.load(f)["env_steps"]
+    for name in ("ppo", "sac"):
+        with np.load(os.path.join(results, "exploration", "heldout", f"{name}.npz")) as f:
+            recorded = f["steps"]
+        np.testing.assert_array_equal(
+            baselines.evaluation_steps(name, budget, len(recorded), runs[name]["settings"]),
+            recorded, err_msg=name)
 
 
 def test_gpguided_baseline_runs_sac_on_a_gymnax_task(tmp_path, capsys):
@@ -193,19 +337,24 @@ def test_gpguided_baseline_runs_sac_on_a_gymnax_task(tmp_path, capsys):
     out = tmp_path / "bl"
     assert cli.main(["baseline", "sac", "--preset", "tiny", "--env", "gymnax:Pendulum-v1",
                      "--seeds", "1", "--evals", "3", "--hidden", "8", "--set", "num_envs=4",
-                     "batch_size=16", "min_replay_size=64", "max_replay_size=1000",
+                     "batch_size=16", "min_replay_size=66", "max_replay_size=1000",
                      "num_eval_envs=4", "--out", str(out), "--compile-cache", "none"]) == 0
     meta = json.loads((out / "baseline_sac.json").read_text())
     data = np.load(out / "baseline_sac.npz")
     assert meta["env"] == "gymnax:Pendulum-v1" and meta["seeds"] == [1000]
-    assert meta["settings"]["min_replay_size"] == 64 and meta["settings"]["num_envs"] == 4
+    assert meta["settings"]["min_replay_size"] == 66 and meta["settings"]["num_envs"] == 4
     assert data["returns"].shape == (1, 3) and np.all(np.isfinite(data["returns"]))
-    assert data["env_steps"][0] == 0 and data["env_steps"][-1] >= meta["num_timesteps"]
-    # tiny preset: 6 updates x 2 episodes x 20 steps
-    assert meta["num_timesteps"] == 6 * 2 * 20
+    # tiny preset: 6 updates x 2 episodes x 20 steps = 240. brax fills the replay buffer with
+    # ceil(66 / 4) = 17 steps of 4 environments = 68, then runs ceil((240 - 68) / (2 x 4)) = 22
+    # steps of 4 in each of the 2 intervals: evaluations at 68 + 88 = 156 and 244
+    np.testing.assert_array_equal(data["env_steps"], [0, 156, 244])
+    assert meta["budget"] == 240 and meta["steps_run"] == 244
     final = float(data["returns"][0, -1])  # 10% of 2 evaluations: the last one
     assert meta["summary"]["final_return_iqm"] == pytest.approx(final)
-    assert f"final return IQM {final:.1f}" in capsys.readouterr().out
+    captured = capsys.readouterr()
+    assert "sac on gymnax:Pendulum-v1 (244 steps run for a budget of 240, 1 seed)" in captured.out
+    assert f"final return IQM {final:.1f}" in captured.out
+    assert "a budget of 240 runs 244 steps" in captured.err
 
 
 def test_importing_the_baselines_prints_nothing():
