@@ -31,10 +31,10 @@ run: $(STAMP)
 
 # The Fig. 5, failure and consistency tables: both dtypes on the reported seeds (never used for
 # tuning), the batch-vs-alone and float32-vs-float64 comparison, then the documentation's tables.
-# It starts afresh: a checkpoint or kernels.npz left by an earlier run would be resumed, whatever
+# It starts afresh: a checkpoint or kernels file left by an earlier run would be resumed, whatever
 # code wrote it (the checkpoint's digest covers the config and seeds, not the code).
 results: $(STAMP)
-	rm -f docs/results/paper_float64/checkpoint_* docs/results/paper_float64/kernels.npz docs/results/paper_float32/checkpoint_* docs/results/paper_float32/kernels.npz
+	rm -f docs/results/paper_float64/checkpoint_* docs/results/paper_float64/kernels*.npz docs/results/paper_float32/checkpoint_* docs/results/paper_float32/kernels*.npz
 	$(VENV)/bin/gpguided reproduce --preset paper --seeds $(SEEDS) --seed-start $(SEED_START) --dtype float64 --out docs/results/paper_float64
 	$(VENV)/bin/gpguided reproduce --preset paper --seeds $(SEEDS) --seed-start $(SEED_START) --dtype float32 --out docs/results/paper_float32
 	$(PY) experiments/consistency.py --seeds $(CONSISTENCY_SEEDS) --f64 docs/results/paper_float64 --f32 docs/results/paper_float32 --out docs/results/consistency
@@ -58,7 +58,7 @@ figures: $(STAMP)
 # The swing-up study: tuning on seeds 100-101, then seeds 1000-1009 against PPO and SAC.
 # It starts afresh, as `results` does (a held-out checkpoint would be resumed, and its wall time lost).
 swingup: $(STAMP)
-	rm -f docs/results/swingup/methods/checkpoint_* docs/results/swingup/methods/kernels.npz
+	rm -f docs/results/swingup/methods/checkpoint_* docs/results/swingup/methods/kernels*.npz
 	$(PY) experiments/swingup_study.py tune
 	$(PY) experiments/swingup_study.py heldout
 	$(PY) experiments/swingup_study.py gpfig

@@ -412,7 +412,7 @@ def _curves(out: str, method: str, scheme: str):
 
 def action_length_scale(out: str, method: str, scheme: str) -> float | None:
     """Median over seeds of the fitted action length-scale (N m), if the run fitted a GP."""
-    path = os.path.join(out, "heldout", method, scheme, "kernels.npz")
+    path = os.path.join(out, "heldout", method, scheme, f"kernels_{method}.npz")
     if not os.path.exists(path):
         return None
     with np.load(path) as f:

@@ -21,9 +21,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpguided_jax import exploration, pendulum, tasks
+from gpguided_jax import exploration, methods, pendulum, tasks
 
-METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction")
 CONTROLLERS = ("linear", "rbf")
 AGE_FUNCTIONS = ("exp", "logit")
 OPTIMIZERS = ("sgd", "adam")
@@ -202,7 +201,8 @@ class TrainConfig:
 
     @property
     def uses_gp(self) -> bool:
-        return self.method != "reinforce"
+        """Whether the method has a Q-GP prior (`methods.Method.uses_gp`)."""
+        return methods.get(self.method).uses_gp
 
     @property
     def hyperfit_episodes(self) -> int:
@@ -247,8 +247,10 @@ def _fail(field: str, message: str):
 
 def validate(cfg: TrainConfig) -> TrainConfig:
     """Checks every field; raises `ValueError` naming the first bad one. Returns cfg."""
-    if cfg.method not in METHODS:
-        _fail("method", f"unknown method {cfg.method!r}; choose from {METHODS}")
+    try:
+        method = methods.get(cfg.method)
+    except ValueError as e:
+        _fail("method", str(e))
     if cfg.controller not in CONTROLLERS:
         _fail("controller", f"unknown controller {cfg.controller!r}; choose from {CONTROLLERS}")
     if cfg.age_fn not in AGE_FUNCTIONS:
@@ -276,12 +278,13 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     if cfg.exploration not in exploration.NOISES:
         _fail("exploration", f"unknown exploration noise {cfg.exploration!r}; choose from "
               f"{exploration.NOISES}")
-    if cfg.method == "guided_direction" and cfg.exploration != "white":
-        _fail("exploration", "guided_direction draws its candidates afresh at each decision, so "
-              f"it takes 'white' only (hold its choice with hold_time), got {cfg.exploration!r}")
-    if cfg.exploration == "parameter" and cfg.method not in ("reinforce", "gp_pg"):
-        _fail("exploration", "'parameter' noise perturbs the fixed-noise policy's controller, so "
-              f"it is for reinforce and gp_pg only, got method {cfg.method!r}")
+    if cfg.exploration not in method.explorations:
+        takers = [m for m in methods.names() if cfg.exploration in methods.get(m).explorations]
+        who = (", ".join(takers[:-1]) + " and " + takers[-1]) if len(takers) > 1 else \
+            (takers[0] if takers else "no method")
+        _fail("exploration", f"{method.explain_exploration}: {cfg.method} takes "
+              f"{', '.join(map(repr, method.explorations))} only, got {cfg.exploration!r}, which "
+              f"is for {who} only")
     for f, ok, what in (("noise_correlation_time", lambda v: v > 0, "> 0 seconds"),
                         ("noise_exponent", lambda v: 0 <= v <= 3, "in [0, 3]"),
                         ("noise_resample_time", lambda v: v >= 0, ">= 0 seconds"),
@@ -322,7 +325,15 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         _fail("env", str(e))
     if not isinstance(cfg.pendulum, pendulum.PendulumParams):
         _fail("pendulum", f"must be PendulumParams (pendulum.make_params), got {type(cfg.pendulum)}")
+    if method.check is not None:
+        method.check(cfg)
     return cfg
+
+
+def __getattr__(name):
+    if name == "METHODS":  # every registered method (`gpguided_jax.methods`), the paper's first
+        return methods.names()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def check_dtype_available(dtype: str) -> None:

@@ -12,9 +12,13 @@ compiled programs of a run, kept for the process (`fit_program`, `init_program`,
 
 Output directory layout (every file is written atomically: to a temporary name, then renamed):
   config.json              resolved config of every method (+ seeds, chunk size, devices, dtype)
-  kernels.npz              fitted GP hyperparameters and prior mean per seed (shared by GP methods)
+  kernels_<method>.npz     a method's fitted prior per seed (GP hyperparameters and prior mean;
+                           fitted once for the methods whose fit inputs agree)
   checkpoint_<method>.npz  state after the last finished chunk and the records so far
   results.npz              methods, seeds, per-update records of shape (methods, seeds, updates)
+                           (NaN past a method's last update, or for a record it does not keep),
+                           num_updates (methods,) and env_steps (methods, updates), the
+                           environment steps spent when each update's record was taken
   summary.csv              per method: final performance (mean and t-interval; IQM and stratified
                            bootstrap interval), updates to 90%, failing seeds by cause
   comparisons.csv          probability of improvement (rliable) of each GP method over REINFORCE
@@ -38,7 +42,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh
 
-from gpguided_jax import checkpoints, distributed, plots, sharding, summaries
+from gpguided_jax import checkpoints, distributed, methods, plots, sharding, summaries
 from gpguided_jax import config as config_lib
 from gpguided_jax import kernels as kernels_lib
 from gpguided_jax import train as train_lib
@@ -87,16 +91,11 @@ def _config_key(cfg: config_lib.TrainConfig) -> str:
     return json.dumps(cfg.to_json_dict(), sort_keys=True)
 
 
-def _fit_config(cfg: config_lib.TrainConfig) -> dict:
-    """The config's fields that the hyperparameter fit reads: all but the method."""
-    return {k: v for k, v in cfg.to_json_dict().items() if k != "method"}
-
-
 def fit_program(train, mesh: Mesh, seed_loop: str):
     """The jitted hyperparameter fit `fit(keys) -> GPPrior` of `train` (from `train.make_train`)
     over the sharded seed axis, kept for the process: one for every GP method of a config."""
     loop = sharding.resolve_seed_loop(seed_loop, mesh)
-    key = (json.dumps(_fit_config(train.config), sort_keys=True), mesh, loop)
+    key = (json.dumps(methods.fit_inputs(train.config), sort_keys=True), mesh, loop)
     return _kept(_FIT_PROGRAMS, key,
                  lambda: sharding.per_seed_program(train.fit_kernel_for_seed, mesh, loop))
 
@@ -119,17 +118,19 @@ def chunk_program(train, mesh: Mesh, seed_loop: str, num_updates: int, gp_progra
     (`train` from `train.make_train`), as `step(state) -> (state, records)` over the sharded seed
     axis (the state's buffers donated).
 
-    With `gp_program='shared'` (the default) every GP method of one static configuration runs the
-    same program (`train.make_gp_methods_train`, the method and the traced config its
-    arguments): it is traced and compiled once per process for the three methods, and is the
-    same program whichever of them a run asks for, so a method's records do not depend on the
-    others. 'per_method' compiles `train.run_chunk` for each method (the records agree with the
-    shared program's to rounding). REINFORCE always has its own program.
+    With `gp_program='shared'` (the default) every method of `train.program_family(cfg)` (the
+    methods that share a prior and an improvement step and accept the config: the three GP
+    methods of the paper) runs the same program (`train.make_methods_train`, the method and the
+    traced config its arguments): it is traced and compiled once per process for all of them,
+    and is the same program whichever of them a run asks for, so a method's records do not
+    depend on the others. 'per_method' compiles `train.run_chunk` for each method (the records
+    agree with the shared program's to rounding). A method alone in its family (REINFORCE) always
+    has its own program.
     """
     _check_gp_program(gp_program)
     cfg = train.config
     loop = sharding.resolve_seed_loop(seed_loop, mesh)
-    if not cfg.uses_gp or gp_program == "per_method":
+    if _program_kind(cfg, gp_program) == "per_method":
         def make():
             return sharding.per_seed_program(lambda s: train.run_chunk(s, cfg, num_updates), mesh,
                                              loop, donate=True)
@@ -147,19 +148,26 @@ def chunk_program(train, mesh: Mesh, seed_loop: str, num_updates: int, gp_progra
     return step
 
 
+def _program_kind(cfg: config_lib.TrainConfig, gp_program: str) -> str:
+    """'shared' if `cfg`'s method runs in its family's one program, else 'per_method'."""
+    shared = gp_program == "shared" and len(train_lib.program_family(cfg)) > 1
+    return "shared" if shared else "per_method"
+
+
 def gp_methods_program(cfg: config_lib.TrainConfig, mesh: Mesh, seed_loop: str, num_updates: int,
                        donate: bool = True):
     """The jitted `program(state, method_index, cfg) -> (state, records)` of
-    `train.make_gp_methods_train` for `cfg`'s static fields, over the sharded seed axis (the
+    `train.make_methods_train` for `cfg`'s static fields, over the sharded seed axis (the
     state's buffers donated unless `donate=False`; `gp_method_args` gives the other two
     arguments). One per static config, mesh, seed loop, chunk length and donation, kept for the
-    process (the last few), so every GP method that asks for it gets the same compiled program."""
+    process (the last few), so every method of the family that asks for it gets the same
+    compiled program."""
     loop = sharding.resolve_seed_loop(seed_loop, mesh)
-    key_cfg = train_lib.gp_methods_key(cfg)
+    key_cfg = train_lib.methods_key(cfg)
     cache_key = (tuple(sorted(key_cfg.static_dict().items())), mesh, loop, num_updates, donate)
 
     def make():
-        run_chunk = train_lib.make_gp_methods_train(key_cfg)
+        run_chunk = train_lib.make_methods_train(key_cfg)
         return sharding.per_seed_program(lambda s, i, c: run_chunk(s, i, c, num_updates), mesh,
                                          loop, donate=donate)
 
@@ -172,8 +180,8 @@ def gp_method_args(cfg: config_lib.TrainConfig, seeds: int, mesh: Mesh):
     def per_seed(x):
         return sharding.shard(np.broadcast_to(np.asarray(x), (seeds,) + np.shape(x)), mesh)
 
-    return (per_seed(np.int32(train_lib.GP_METHODS.index(cfg.method))),
-            jax.tree_util.tree_map(per_seed, train_lib.gp_methods_key(cfg)))
+    return (per_seed(np.int32(train_lib.method_index(cfg))),
+            jax.tree_util.tree_map(per_seed, train_lib.methods_key(cfg)))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -181,29 +189,47 @@ def gp_method_args(cfg: config_lib.TrainConfig, seeds: int, mesh: Mesh):
 # ------------------------------------------------------------------------------------------------
 
 
-def fit_priors(cfg: config_lib.TrainConfig, seeds, out_dir, mesh, progress,
-               seed_loop: str = "auto") -> train_lib.GPPrior:
-    """Loads `kernels.npz` if it was fitted for these seeds and this config, else fits and saves.
+def fit_priors(cfgs: dict[str, config_lib.TrainConfig], seeds, out_dir, mesh, progress,
+               seed_loop: str = "auto") -> dict[str, train_lib.GPPrior]:
+    """The fitted prior of each method of `cfgs` (method -> config) that declares one.
 
-    The fit depends only on the seed and the initial policy's data (not on the method), so every
-    GP method of a seed shares it.
+    A method's prior is read from `kernels_<method>.npz` if it was fitted for these seeds and the
+    method's fit inputs (`methods.fit_inputs`: the config fields its fit reads), else fitted and
+    saved. Methods whose fit inputs agree share one fit; a method whose tuned settings change
+    the fit's data (its discount, initial noise, hold, ...) gets its own.
     """
-    path = os.path.join(out_dir, "kernels.npz")
     loop = sharding.resolve_seed_loop(seed_loop, mesh)
-    digest = checkpoints.digest(_fit_config(cfg), list(map(int, seeds)), loop)
-    saved = checkpoints.read_npz(path, progress)
-    if saved is not None and str(saved.get("digest", "")) == digest:
-        kernel = kernels_lib.KernelParams(*(saved[k] for k in kernels_lib.KernelParams._fields))
-        return train_lib.GPPrior(kernel, saved["prior_mean"])
+    fitted: dict[str, train_lib.GPPrior] = {}  # fit digest -> prior
+    priors = {}
+    for m, cfg in cfgs.items():
+        inputs = methods.fit_inputs(cfg)
+        if inputs is None:
+            continue
+        digest = checkpoints.digest(inputs, list(map(int, seeds)), loop)
+        path = os.path.join(out_dir, f"kernels_{m}.npz")
+        saved = checkpoints.read_npz(path, progress)
+        if saved is not None and str(saved.get("digest", "")) == digest:
+            kernel = kernels_lib.KernelParams(*(saved[k] for k in kernels_lib.KernelParams._fields))
+            priors[m] = fitted.setdefault(digest, train_lib.GPPrior(kernel, saved["prior_mean"]))
+            continue
+        if digest not in fitted:
+            fitted[digest] = _fit(cfg, seeds, mesh, loop, progress)
+        priors[m] = prior = fitted[digest]
+        if distributed.is_main():
+            checkpoints.atomic_savez(path, digest=digest, seeds=np.asarray(seeds),
+                                     prior_mean=prior.mean, **prior.kernel._asdict())
+    return priors
+
+
+def _fit(cfg, seeds, mesh, loop, progress) -> train_lib.GPPrior:
+    """The prior of `cfg`'s method fitted for `seeds` (on the host, the padding seeds dropped)."""
     t0 = time.perf_counter()
     fit = fit_program(train_lib.make_train(cfg), mesh, loop)
     keys = sharding.seed_keys(sharding.pad_seeds(seeds, mesh.devices.size))
     fitted = distributed.gather(fit(sharding.shard(keys, mesh)))
     prior = jax.tree_util.tree_map(lambda x: np.asarray(x)[: len(seeds)], fitted)
-    if distributed.is_main():
-        checkpoints.atomic_savez(path, digest=digest, seeds=np.asarray(seeds),
-                                 prior_mean=prior.mean, **prior.kernel._asdict())
-    progress(f"hyperparameter fit for {len(seeds)} seeds: {time.perf_counter() - t0:.1f}s")
+    progress(f"[{cfg.method}] hyperparameter fit for {len(seeds)} seeds: "
+             f"{time.perf_counter() - t0:.1f}s")
     return prior
 
 
@@ -253,7 +279,7 @@ def run_method(
     ckpt = checkpoints.checkpoint_path(out_dir, cfg.method)
     digest = checkpoints.digest(cfg.to_json_dict(), padded, chunk_size,
                                 [str(d) for d in mesh.devices.flat], loop,
-                                gp_program if cfg.uses_gp else "per_method")
+                                _program_kind(cfg, gp_program))
     init = init_program(train, mesh, loop, kernels is not None)
     state, records, done = _resume_or_init(cfg, init, _init_args(padded, len(seeds), kernels, mesh),
                                            ckpt, digest, mesh, n_chunks, progress)
@@ -296,8 +322,9 @@ def _init_args(padded: list[int], n_real: int, kernels, mesh: Mesh) -> tuple:
 def _resume_or_init(cfg, init, args, ckpt, digest, mesh, n_chunks, progress):
     """(state, records, chunks done): from the checkpoint if it matches `digest`, else the initial
     states `init(*args)` of the (padded) seeds with no records."""
-    loaded = checkpoints.load_checkpoint(ckpt, jax.eval_shape(init, *args), train_lib.RECORD_FIELDS,
-                                         digest, mesh, progress)
+    fields = train_lib.record_fields(cfg.method)
+    loaded = checkpoints.load_checkpoint(ckpt, jax.eval_shape(init, *args), fields, digest, mesh,
+                                         progress)
     if loaded is not None:
         progress(f"[{cfg.method}] resuming from {ckpt}: {loaded[2]}/{n_chunks} chunks done")
         return loaded
@@ -305,7 +332,7 @@ def _resume_or_init(cfg, init, args, ckpt, digest, mesh, n_chunks, progress):
     state = jax.block_until_ready(init(*args))
     progress(f"[{cfg.method}] init {time.perf_counter() - t0:.1f}s")
     num_seeds = args[0].shape[0]
-    return state, {k: np.zeros((num_seeds, 0)) for k in train_lib.RECORD_FIELDS}, 0
+    return state, {k: np.zeros((num_seeds, 0)) for k in fields}, 0
 
 
 def append_records(records: dict, rec) -> tuple:
@@ -313,7 +340,7 @@ def append_records(records: dict, rec) -> tuple:
     appended: (the chunk's records, the run's)."""
     rec = distributed.gather(rec)
     return rec, {k: np.concatenate([records[k], np.asarray(getattr(rec, k))], axis=1)
-                 for k in train_lib.RECORD_FIELDS}
+                 for k in rec._fields}
 
 
 def _chunk_progress(cfg: config_lib.TrainConfig, rec, n_real: int, updates_done: int,
@@ -332,6 +359,8 @@ def _chunk_progress(cfg: config_lib.TrainConfig, rec, n_real: int, updates_done:
            f"mean reward {np.mean(rec.mean_reward[:n_real, -1]):.3f}")
     for field, what in (("nonfinite_grad", "non-finite gradient estimates skipped"),
                         ("gp_guard", "GP updates rejected by the health check")):
+        if field not in rec._fields:
+            continue
         bad = int(np.sum(np.asarray(getattr(rec, field))[:n_real]))
         if bad:
             msg += f" | WARNING: {bad} {what}"
@@ -401,31 +430,30 @@ def _reproduce(preset, seeds, methods, out_dir, dtype, chunk_size, num_devices, 
              "devices": [str(d) for d in mesh.devices.flat], "seed_loop": loop,
              "gp_program": gp_program, "methods": {m: c.to_json_dict() for m, c in cfgs.items()}}, indent=2))
 
-    gp_methods = [m for m in methods if cfgs[m].uses_gp]
-    priors = (fit_priors(cfgs[gp_methods[0]], seeds, out_dir, mesh, progress, loop)
-              if gp_methods else None)
+    priors = fit_priors(cfgs, seeds, out_dir, mesh, progress, loop)
     records = {}
     for m in methods:
         rec, _ = run_method(cfgs[m], seeds, out_dir, chunk_size=chunk_size, mesh=mesh,
-                            kernels=priors if cfgs[m].uses_gp else None,
+                            kernels=priors.get(m),
                             max_chunks=max_chunks, progress=progress, seed_loop=loop,
                             gp_program=gp_program)
         if rec["mean_reward"].shape[1] < cfgs[m].num_updates:
             return {"complete": False}
         records[m] = rec
 
-    out = _summary(cfgs[methods[0]], records)
+    out = _summary(cfgs, records)
     if main:
-        out["figures"] = _write_results(out_dir, methods, seeds, records, out)
+        out["figures"] = _write_results(out_dir, cfgs, seeds, records, out)
     return out
 
 
-def _summary(cfg: config_lib.TrainConfig, records: dict) -> dict:
+def _summary(cfgs: dict[str, config_lib.TrainConfig], records: dict) -> dict:
     """The run's summary and comparison rows and their Markdown (`summaries`), for the task of
-    `cfg` (the level of doing nothing, and the swing-up columns if its episodes can hold one)."""
+    the configs (the level of doing nothing, and the swing-up columns if its episodes can hold
+    one)."""
+    cfg = next(iter(cfgs.values()))
     pendulum = cfg.env == "pendulum"
-    budgets = None if pendulum else {
-        m: summaries.task_budget(cfg.replace(method=m)) for m in records}
+    budgets = None if pendulum else {m: summaries.task_budget(cfgs[m]) for m in records}
     rows = summaries.summarise(records, summaries.zero_torque_reward(cfg) if pendulum else "no-level",
                                success=summaries.holds_swing_up(cfg), budgets=budgets)
     comparisons = summaries.compare(records)
@@ -434,13 +462,43 @@ def _summary(cfg: config_lib.TrainConfig, records: dict) -> dict:
             + ("\n\n" + summaries.comparisons_markdown(comparisons) if comparisons else "")}
 
 
-def _write_results(out_dir: str, methods: Sequence[str], seeds: list[int], records: dict,
+def stack_records(records: dict[str, dict]) -> dict[str, np.ndarray]:
+    """Per-method records as arrays (methods, seeds, updates) of every field any method keeps,
+    NaN past a method's last update or where it does not keep the field."""
+    names = list(records)
+    fields = list(dict.fromkeys(k for m in names for k in records[m]))
+    seeds = max(np.shape(records[m]["mean_reward"])[0] for m in names)
+    updates = max(np.shape(records[m]["mean_reward"])[1] for m in names)
+    out = {}
+    for k in fields:
+        shapes = {np.shape(records[m].get(k)) for m in names}
+        if len(shapes) == 1 and all(k in records[m] for m in names):  # nothing to pad
+            out[k] = np.stack([np.asarray(records[m][k]) for m in names])
+            continue
+        arr = np.full((len(names), seeds, updates), np.nan)
+        for i, m in enumerate(names):
+            if k in records[m]:
+                v = np.asarray(records[m][k], float)
+                arr[i, : v.shape[0], : v.shape[1]] = v
+        out[k] = arr
+    return out
+
+
+def _write_results(out_dir: str, cfgs: dict, seeds: list[int], records: dict,
                    out: dict) -> list[str]:
     """results.npz, summary.csv, comparisons.csv (if any) and Fig. 5; returns the figures' paths."""
-    arrays = {k: np.stack([records[m][k] for m in methods]) for k in train_lib.RECORD_FIELDS}
-    checkpoints.atomic_savez(os.path.join(out_dir, "results.npz"), methods=np.asarray(methods),
-                             seeds=np.asarray(seeds), **arrays)
+    methods_run = list(records)
+    arrays = stack_records(records)
+    updates = arrays["mean_reward"].shape[-1]
+    num_updates = np.asarray([records[m]["mean_reward"].shape[1] for m in methods_run])
+    env_steps = np.full((len(methods_run), updates), np.nan)
+    for i, m in enumerate(methods_run):
+        env_steps[i, : num_updates[i]] = summaries.env_steps_axis(summaries.task_budget(cfgs[m]),
+                                                                  int(num_updates[i]))
+    checkpoints.atomic_savez(os.path.join(out_dir, "results.npz"), methods=np.asarray(methods_run),
+                             seeds=np.asarray(seeds), num_updates=num_updates, env_steps=env_steps,
+                             **arrays)
     summaries.write_csv(out["summary"], os.path.join(out_dir, "summary.csv"))
     if out["comparisons"]:
         summaries.write_csv(out["comparisons"], os.path.join(out_dir, "comparisons.csv"))
-    return plots.plot_fig5({"methods": list(methods), **arrays}, out_dir)
+    return plots.plot_fig5({"methods": methods_run, "env_steps": env_steps, **arrays}, out_dir)

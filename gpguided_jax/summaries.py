@@ -8,7 +8,8 @@ runs), NumPy, not traced:
   its stratified-bootstrap interval), updates to 90% of the way (`updates_to_90pct`), and the
   seeds that failed, by cause (`failing_seeds`, `FAILURE_CAUSES`; the level of doing nothing is
   `zero_torque_reward`);
-* `compare`: the probability of improvement P(X > Y) of the `COMPARISONS` pairs (rliable);
+* `compare`: the probability of improvement P(X > Y) of the pairs the methods declare
+  (`methods.comparisons`; rliable);
 * `write_csv`, `summary_markdown`, `comparisons_markdown`: summary.csv / comparisons.csv and
   their Markdown tables.
 """
@@ -24,19 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpguided_jax import checkpoints, pendulum, tasks
+from gpguided_jax import checkpoints, methods, pendulum, tasks
 from gpguided_jax import config as config_lib
 from gpguided_jax import stats as stats_lib
-from gpguided_jax import train as train_lib
 
-# Pairs (x, y) for which the probability that x beats y is reported (rliable).
-COMPARISONS = (
-    ("gp_pg", "reinforce"),
-    ("guided_variance", "reinforce"),
-    ("guided_direction", "reinforce"),
-    ("guided_variance", "gp_pg"),
-    ("guided_direction", "gp_pg"),
-)
 FAILURE_CAUSES = ("nonfinite_grad", "gp_guard", "std_at_bound", "below_zero_torque", "nan_record")
 
 
@@ -114,6 +106,18 @@ def task_budget(cfg: config_lib.TrainConfig) -> TaskBudget:
                       "eval_return" if cfg.eval_episodes > 0 else "mean_return")
 
 
+def env_steps_axis(budget: TaskBudget, num_updates: int) -> np.ndarray:
+    """The environment steps spent (the prior's fit included) when each of `num_updates` records
+    of `budget.return_record` was taken: (num_updates,).
+
+    Record u of eval_return evaluates the policy before update u's step, after u updates'
+    episodes (so record 0 is the policy before learning, at `fit_steps`); record u of
+    mean_return is that of update u's own episodes, which are done after u + 1 updates'. Every
+    per-update record of a run shares this axis with its return record."""
+    done = np.arange(num_updates) + (budget.return_record == "mean_return")
+    return budget.fit_steps + budget.steps_per_update * done
+
+
 def steps_to_threshold(returns: np.ndarray, budget: TaskBudget) -> np.ndarray:
     """Per seed: the environment steps spent (fit included) when the policy's return (record
     `budget.return_record`) first reaches the threshold; NaN where it never does (or there is no
@@ -125,8 +129,7 @@ def steps_to_threshold(returns: np.ndarray, budget: TaskBudget) -> np.ndarray:
     if budget.threshold is None:
         return np.full(returns.shape[0], np.nan)
     reached = returns >= budget.threshold
-    done = np.arange(returns.shape[-1]) + (budget.return_record == "mean_return")
-    steps = budget.fit_steps + budget.steps_per_update * done
+    steps = env_steps_axis(budget, returns.shape[-1])
     return np.where(reached.any(axis=-1), steps[reached.argmax(axis=-1)], np.nan)
 
 
@@ -141,15 +144,19 @@ def failing_seeds(records: dict, zero_torque: float | None) -> dict[str, np.ndar
     * nan_record: any record is NaN;
     * any: any of these.
     """
+    none = np.zeros(np.shape(records["mean_reward"])[:-1], bool)
+
+    def fired(field):  # a method that does not keep the record never fails by it
+        return np.any(np.asarray(records[field]) > 0, axis=-1) if field in records else none
+
     out = {
-        "nonfinite_grad": np.any(records["nonfinite_grad"] > 0, axis=-1),
-        "gp_guard": np.any(records["gp_guard"] > 0, axis=-1),
-        "std_at_bound": np.any(records["std_at_bound"] > 0, axis=-1),
+        "nonfinite_grad": fired("nonfinite_grad"),
+        "gp_guard": fired("gp_guard"),
+        "std_at_bound": fired("std_at_bound"),
         "below_zero_torque": (final_performance(records["mean_reward"]) < zero_torque
-                              if zero_torque is not None
-                              else np.zeros(np.shape(records["mean_reward"])[:-1], bool)),
+                              if zero_torque is not None else none),
         "nan_record": np.any(np.stack([np.isnan(np.asarray(records[k], float)).any(-1)
-                                       for k in train_lib.RECORD_FIELDS]), axis=0),
+                                       for k in records]), axis=0),
     }
     out["any"] = np.any(np.stack(list(out.values())), axis=0)
     return out
@@ -225,10 +232,13 @@ def summarise(records_by_method: dict[str, dict], zero_torque: float | None = No
     return rows
 
 
-def compare(records_by_method: dict[str, dict], pairs=COMPARISONS,
+def compare(records_by_method: dict[str, dict], pairs=None,
             reps: int = stats_lib.DEFAULT_REPS) -> list[dict]:
     """Probability of improvement P(X > Y) of final performance, with its 95% bootstrap interval,
-    for the pairs whose methods were both run."""
+    for the pairs whose methods were both run (default: the pairs the methods declare,
+    `methods.comparisons`)."""
+    if pairs is None:
+        pairs = methods.comparisons(records_by_method)
     rows = []
     for x, y in pairs:
         if x in records_by_method and y in records_by_method:

@@ -32,14 +32,13 @@ import jax
 import numpy as np
 
 from gpguided_jax import config as config_lib
-from gpguided_jax import sharding, summaries
+from gpguided_jax import methods, sharding, summaries
 from gpguided_jax import stats as stats_lib
 from gpguided_jax import train as train_lib
 
 ALIASES = {"lambda": "age_penalty", "beta": "inverse_temperature", "lr": "learning_rate"}
 # Traced fields that the GP hyperparameter fit does not read: for these the kernel is fitted once per
 # seed and shared by every value (bitwise what each run's own fit would give, at 1/len(values) cost).
-_HYPERFIT_INPUTS = ("discount", "init_log_std", "pendulum")
 SWEEPABLE_FIELDS = tuple(f for f in config_lib.TRACED_FIELDS if f != "pendulum")
 
 
@@ -121,7 +120,9 @@ def summarise_sweep(param: str, values: Sequence[float], records: dict) -> list[
         r = {k: r[k] for k in ("seeds", "initial_mean", "final_mean", "ci95_low", "ci95_high",
                                "updates_to_90pct")}
         r["fresh_bv_share_mean"] = float(np.mean(records["fresh_bv_share"][i]))
-        r["seeds_with_skipped_updates"] = int(np.sum(np.any(records["nonfinite_grad"][i] > 0, axis=-1)))
+        r["seeds_with_skipped_updates"] = (
+            int(np.sum(np.any(records["nonfinite_grad"][i] > 0, axis=-1)))
+            if "nonfinite_grad" in records else 0)
         r["seeds_with_gp_guard"] = int(np.sum(np.any(records["gp_guard"][i] > 0, axis=-1)))
         out.append({param: float(v), **r})
     return out
@@ -209,7 +210,7 @@ def _initial_states(train, base, field, seeds, grid, stacked, mesh, program):
     """Every run's initial state. The GP prior is fitted once per seed and shared along the value
     axis unless the swept field is one the fit reads (then each run's init fits its own)."""
     keys = sharding.seed_keys([s for _, s in grid])
-    if base.uses_gp and field not in _HYPERFIT_INPUTS:
+    if base.uses_gp and field not in methods.get(base.method).fit_fields:
         fit = program(lambda k: train.fit_kernel_for_seed(k, base))
         fit_keys = sharding.seed_keys(sharding.pad_seeds(seeds, mesh.devices.size))
         kern = jax.device_get(fit(sharding.shard(fit_keys, mesh)))
@@ -227,18 +228,18 @@ def _run_chunks(train, base, field, state, stacked, n_real, n, program, progress
     """All updates, `n` per compiled call, with progress after each: field -> (runs, updates)
     records of the first `n_real` runs (the rest only fill devices)."""
     chunk = program(lambda s, c: train.run_chunk(s, c, n), donate=True)
-    records = {k: [] for k in train_lib.RECORD_FIELDS}
+    records = {k: [] for k in train_lib.record_fields(base.method)}
     t0 = time.perf_counter()
     for done in range(n, base.num_updates + 1, n):
         state, rec = chunk(state, stacked)
         rec = jax.device_get(rec)
-        for k in train_lib.RECORD_FIELDS:
+        for k in records:
             records[k].append(np.asarray(getattr(rec, k))[:n_real])
         elapsed = time.perf_counter() - t0
         eta = elapsed / done * (base.num_updates - done)
         msg = (f"[sweep {field}] updates {done}/{base.num_updates} | {elapsed:.1f}s | ETA {eta:.0f}s"
                f" | mean reward {np.mean(records['mean_reward'][-1][:, -1]):.3f}")
-        bad = int(np.sum(records["nonfinite_grad"][-1]))
+        bad = int(np.sum(records["nonfinite_grad"][-1])) if "nonfinite_grad" in records else 0
         if bad:
             msg += f" | WARNING: {bad} non-finite gradient estimates skipped"
         progress(msg)

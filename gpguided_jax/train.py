@@ -1,56 +1,60 @@
 """Algorithm 1 end to end as one pure function per seed: `make_train(config) -> train(key)`.
 
-One seed's run is nested `lax.scan`s: updates -> episodes -> steps. One policy update (Algorithm 1)
-is, in order, the functions of this module:
+One seed's run is nested `lax.scan`s: updates -> episodes -> steps. One update (`one_update`) is
+two parts:
 
-1. `rollout`: act with the method's policy for `episodes_per_update` episodes; the GP is held
-   fixed during an episode (a policy that does not read the GP, the fixed-noise policy of
-   REINFORCE and gp_pg, rolls the episodes out side by side before the GP takes any of them in);
-2. `take_in_episode`: after each episode the GP takes in its (x_t, Ret_t) pairs, each stamped with
-   the update index (eq. 12), and a health check (`sparse_gp.check`) accepts or rejects the new
-   GP state (a rejected episode leaves the GP as it was and is counted in `gp_guard`);
-3. `gradient_estimate`: REINFORCE (eq. 4) with returns-to-go, or eq. 9 with Q_GP(s_t, a_t) from the
-   GP after it has taken in this update's episodes; each step's score is the hand-derived
-   grad log pi of the policy that chose the action (eq. 1, 17 or 21), evaluated when it acted;
-4. `optimiser_step`: one optax ascent step, the global gradient norm clipped at `max_grad_norm`
-   (a non-finite estimate is skipped), then the learnable sigma clipped to [min_std, max_std].
+* steps 1-2, the same for every method: `roll_out_and_take_in` acts with the method's policy for
+  `episodes_per_update` episodes (`rollouts.rollout`) and, for a method with a Q-GP prior, the GP
+  takes in each episode's (x_t, Ret_t) pairs, each stamped with the update index (eq. 12), a
+  health check (`sparse_gp.check`) accepting or rejecting the new GP state (a rejected episode
+  leaves the GP as it was and is counted in `gp_guard`). The GP is held fixed during an episode;
+  a policy that does not read the GP rolls the update's episodes out side by side first;
+* steps 3-4, the method's own improvement step, `method.update(prog, cfg, state, batch)` of its
+  declared `methods.Method` (the paper's four: `gpguided_jax.policy_gradient`), which returns the
+  new policy parameters, optimiser state, the method's own state and its records.
 
-Before the first update the GP hyperparameters are fitted on `hyperfit_samples` pairs collected
-with the initial fixed-noise policy (paper §VI; `fit_prior`). `jit(vmap(train))(keys)` runs all
-seeds at once; `train.init` and `train.run_chunk` expose the same computation in pieces for chunked,
-resumable runs. Every array is of `config.dtype` (float64 needs JAX's x64 mode; see
-`gpguided_jax.enable_x64`).
+Before the first update a method with a Q-GP prior fits the GP's hyperparameters on
+`hyperfit_samples` pairs collected with the initial fixed-noise policy (paper §VI; `fit_prior`).
+`jit(vmap(train))(keys)` runs all seeds at once; `train.init` and `train.run_chunk` expose the same
+computation in pieces for chunked, resumable runs. Every array is of `config.dtype` (float64 needs
+JAX's x64 mode; see `gpguided_jax.enable_x64`).
 """
 
 from __future__ import annotations
 
+import functools
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
-import optax
 
-from gpguided_jax import controllers as controllers_lib
-from gpguided_jax import (
-    estimators,
-    exploration,
-    hyperfit,
-    kernels,
-    pendulum,
-    policies,
-    sparse_gp,
-    swingup,
-    tasks,
+from gpguided_jax import hyperfit, kernels, methods, policies, sparse_gp
+from gpguided_jax.config import TrainConfig, validate
+
+# the paper's methods, registered on import; their step pieces are re-exported here
+from gpguided_jax.policy_gradient import (  # noqa: F401
+    gradient_estimate,
+    make_optimizer,
+    optimiser_step,
 )
-from gpguided_jax.config import TrainConfig, control_interval, validate
+from gpguided_jax.rollouts import (  # noqa: F401
+    Episode,
+    Program,
+    alive_mean,
+    episode_returns,
+    episode_success,
+    evaluate,
+    features,
+    gp_spacing,
+    make_controller,
+    make_program,
+    mean_episode_return,
+    policy_context,
+    rollout,
+    run_episode,
+    spread_decisions,
+)
 
-_POLICY_OF_METHOD = {
-    "reinforce": "fixed_noise",
-    "gp_pg": "fixed_noise",
-    "guided_variance": "guided_variance",
-    "guided_direction": "gibbs",
-}
 FEATURE_DIM = 4  # the pendulum's GP input (sin phi, cos phi, omega, a); a task's: task.feature_dim
 
 
@@ -60,10 +64,11 @@ class TrainState(NamedTuple):
     Attributes:
       theta: `PolicyParams`.
       opt_state: the optax state.
-      gp: `SparseGPState` (capacity M).
+      gp: `SparseGPState` (capacity M; one slot for a method without a Q-GP).
       kernel: fitted `KernelParams`.
       key: PRNG key for the coming updates.
       update_index: () int32, updates done so far (the timestamp of new basis vectors).
+      method_state: the method's own state (`Method.init`; `()` for the paper's methods).
     """
 
     theta: policies.PolicyParams
@@ -72,7 +77,7 @@ class TrainState(NamedTuple):
     kernel: kernels.KernelParams
     key: jax.Array
     update_index: jax.Array
-
+    method_state: Any = ()
 
 class GPPrior(NamedTuple):
     """What the GP methods of one seed share, fitted before learning (paper §VI).
@@ -87,7 +92,9 @@ class GPPrior(NamedTuple):
 
 
 class UpdateRecord(NamedTuple):
-    """Per-update records (each () per update; stacked to (num_updates,) by the scan).
+    """Per-update records of the paper's methods (each () per update; stacked to (num_updates,)
+    by the scan): `methods.SHARED_RECORDS` and the policy-gradient step's own
+    (`policy_gradient.RECORDS`: grad_norm, grad_clipped, nonfinite_grad, std_at_bound).
 
     Attributes:
       mean_reward: average reward per step over the update's episodes (Fig. 5a).
@@ -132,305 +139,48 @@ class UpdateRecord(NamedTuple):
 # The names of a run's records (results.npz, checkpoints, summaries): field -> (seeds, updates).
 RECORD_FIELDS = UpdateRecord._fields
 
-
-class Episode(NamedTuple):
-    states: jax.Array  # (H, obs_dim), the observation each action was taken at
-    next_states: jax.Array  # (H, obs_dim), the observation it led to
-    actions: jax.Array  # (H,)
-    rewards: jax.Array  # (H,), 0 after the episode's end
-    scores: policies.PolicyParams  # leaves (H, ...), 0 after the episode's end
-    exploration_std: jax.Array  # (H,)
-    alive: jax.Array | None  # (H,) bool, True before the end; None for a task that never ends
-    # (H,) bool, True at the steps where an episode ended and the environment was restarted
-    # (`episode_end='restart'`; alive is then None); None otherwise
-    ends: jax.Array | None = None
-
-
-class Program(NamedTuple):
-    """The static pieces of one configuration (what `make_train` closes over).
+class Batch(NamedTuple):
+    """What steps 1-2 hand the method's improvement step.
 
     Attributes:
-      config: the `TrainConfig` whose static fields fix the program.
-      controller: the deterministic controller c(s; theta_c).
-      policy: the method's policy (fixed noise, guided variance or Gibbs).
-      behaviour: the fixed-noise policy that collects the hyperparameter-fit data.
-      task: the environment (`tasks.make_task(config.env)`).
-      hold: control steps per decision (`config.hold_time`; 1: every step).
-      noise: the exploration noise over an episode's decision points (`exploration.make_noise`).
+      episodes: the update's `Episode`s, leaves with a leading (episodes_per_update,) axis.
+      returns: (episodes_per_update, H) their returns-to-go.
+      gp: the `SparseGPState` after it has taken the episodes in (unchanged without a Q-GP).
     """
 
-    config: TrainConfig
-    controller: controllers_lib.Controller
-    policy: policies.Policy
-    behaviour: policies.Policy
-    task: tasks.Task
-    hold: int = 1
-    noise: exploration.NoiseProcess | None = None
-
-    @property
-    def dtype(self):
-        return jnp.dtype(self.config.dtype)
+    episodes: Episode
+    returns: jax.Array
+    gp: sparse_gp.SparseGPState
 
 
-def make_controller(cfg: TrainConfig) -> controllers_lib.Controller:
-    """The controller of `cfg.controller` on the observations of `cfg.env`."""
-    return tasks.make_task(cfg.env).make_controller(cfg.controller)
+@functools.cache
+def _record_type(fields: tuple[str, ...]):
+    if set(fields) == set(UpdateRecord._fields):
+        return UpdateRecord
+    return NamedTuple(f"Record_{abs(hash(fields)):x}", [(f, jax.Array) for f in fields])
 
 
-def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
-    """The ascent step: global-norm clipping at `max_grad_norm`, then SGD (the paper) or Adam."""
-    base = optax.sgd(cfg.learning_rate) if cfg.optimizer == "sgd" else optax.adam(cfg.learning_rate)
-    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), base)
+def record_type(method: methods.Method):
+    """The NamedTuple of a method's per-update records: `methods.SHARED_RECORDS` and its own
+    (`UpdateRecord` for the paper's methods)."""
+    return _record_type(methods.SHARED_RECORDS + tuple(method.records))
 
 
-def make_program(cfg: TrainConfig) -> Program:
-    validate(cfg)
-    task = tasks.make_task(cfg.env)
-    controller = task.make_controller(cfg.controller)
-    policy = policies.make_policy(
-        _POLICY_OF_METHOD[cfg.method], controller, num_candidates=cfg.num_candidates,
-        features=task.features, optimism=cfg.optimism)
-    dt = control_interval(cfg)
-    hold = exploration.hold_steps(cfg.hold_time, dt)
-    noise = exploration.make_noise(
-        cfg.exploration, exploration.num_decisions(cfg.episode_length, hold), hold * dt,
-        correlation_time=cfg.noise_correlation_time, exponent=cfg.noise_exponent,
-        resample_time=cfg.noise_resample_time)
-    return Program(cfg, controller, policy, policies.make_policy("fixed_noise", controller), task,
-                   hold, noise)
+def record_fields(method_name: str) -> tuple[str, ...]:
+    """The names of the records of the method called `method_name`."""
+    return record_type(methods.get(method_name))._fields
 
 
-def _features(prog: Program, states, actions):
-    return jax.vmap(prog.task.features)(states, actions)
+def __getattr__(name):
+    if name == "GP_METHODS":  # the registered methods with a Q-GP prior
+        return methods.gp_methods()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
-
-def policy_context(cfg: TrainConfig, gp, kernel) -> policies.PolicyContext:
-    """The `PolicyContext` the training loop gives its policy for a GP state and kernel."""
-    # lambda_v and the candidate scale are given in (N m)^2 where the GP is at its prior variance.
-    sf2 = kernel.signal_variance
-    return policies.make_context(
-        gp,
-        kernel,
-        variance_scale=cfg.guided_variance_scale / sf2,
-        variance_floor=cfg.guided_variance_floor,
-        inverse_temperature=cfg.inverse_temperature,
-        energy_width=cfg.energy_width,
-        candidate_scale=cfg.candidate_scale / sf2,
-        candidate_floor=cfg.candidate_floor,
-    )
 
 
 # ------------------------------------------------------------------------------------------------
-# The steps of one update, in order.
+# One update: the shared steps 1-2, then the method's improvement step.
 # ------------------------------------------------------------------------------------------------
-
-
-def run_episode(prog: Program, key, act, cfg: TrainConfig, num_steps: int, hold: int = 1,
-                xs=None, restart: bool = False):
-    """One episode of `num_steps` steps of the task, acting with `act(key, obs) -> (action, out)`
-    (`act(key, obs, x)` with x the decision's entry of `xs`, if given) every `hold` steps and
-    holding the action in between.
-
-    Returns (obs, next_obs, actions, rewards, alive, outs): the first four with a leading
-    (num_steps,) axis, `alive` (num_steps,) bool or None for a task that never ends early, and
-    `outs` with a leading axis of decisions, `exploration.num_decisions(num_steps, hold)`. After
-    an episode's end the environment stays in its last state, and the rewards are 0 (module notes
-    of `gpguided_jax.tasks`). With `restart` (static) the environment is reset after an end and
-    the steps go on from the new start; `alive` is then `ends`, (num_steps,) bool, True at the
-    steps that ended an episode (whose next_obs is the episode's last observation).
-    """
-    task = prog.task
-    key_reset, key_steps = jax.random.split(key)
-    env_state, obs = task.reset(key_reset, cfg)
-    call = (lambda k, o, x: act(k, o)) if xs is None else act
-
-    def env_step(carry, key_env, a):
-        env_state, obs, alive = carry
-        new_state, new_obs, r, done = task.step(key_env, env_state, a, cfg)
-        if not task.terminates:
-            return (new_state, new_obs, alive), (obs, new_obs, r, alive)
-        if restart:
-            done = jnp.asarray(done, bool)
-            fresh_state, fresh_obs = task.reset(jax.random.fold_in(key_env, 1), cfg)
-            pick = lambda fresh, new: jnp.where(done, fresh, new)  # noqa: E731
-            carry = (jax.tree_util.tree_map(pick, fresh_state, new_state),
-                     pick(fresh_obs, new_obs), alive)
-            return carry, (obs, new_obs, r, done)
-        keep = lambda new, old: jnp.where(alive, new, old)  # noqa: E731
-        carry = (jax.tree_util.tree_map(keep, new_state, env_state), keep(new_obs, obs),
-                 alive & ~done)
-        return carry, (obs, carry[1], jnp.where(alive, r, jnp.zeros_like(r)), alive)
-
-    def decide(carry, key_and_x):
-        step_key, x = key_and_x
-        key_act, key_env = jax.random.split(step_key)
-        a, out = call(key_act, carry[1], x)
-        if hold == 1:
-            carry, per_step = env_step(carry, key_env, a)
-            return carry, (per_step, a, out)
-        carry, per_step = jax.lax.scan(lambda c, k: env_step(c, k, a), carry,
-                                       jax.random.split(key_env, hold))
-        return carry, (per_step, a, out)
-
-    n = exploration.num_decisions(num_steps, hold)
-    keys = jax.random.split(key_steps, n)
-    _, ((o, o_next, r, alive), a, out) = jax.lax.scan(
-        decide, (env_state, obs, jnp.ones((), bool)), (keys, xs))
-    if hold > 1:
-        steps = lambda v: v.reshape((n * hold,) + v.shape[2:])[:num_steps]  # noqa: E731
-        o, o_next, r, alive = map(steps, (o, o_next, r, alive))
-        a = jnp.repeat(a, hold)[:num_steps]
-    return o, o_next, a, r, (alive if task.terminates else None), out
-
-
-def gp_spacing(gp_stride: int, hold: int) -> int:
-    """Steps between the pairs an episode gives the GP: the decisions (every `hold` steps) at
-    least `gp_stride` steps apart."""
-    return -(-gp_stride // hold) * hold
-
-
-def spread_decisions(values, hold: int, num_steps: int, fill: str = "zero"):
-    """Per-decision values (D, ...) as per-step values (num_steps, ...): at the decision steps and
-    0 in between (`fill='zero'`, for scores) or held (`fill='hold'`)."""
-    if hold == 1:
-        return values
-    if fill == "hold":
-        return jnp.repeat(values, hold, axis=0)[:num_steps]
-    padded = jnp.zeros((values.shape[0], hold) + values.shape[1:], values.dtype)
-    padded = padded.at[:, 0].set(values)
-    return padded.reshape((-1,) + values.shape[1:])[:num_steps]
-
-
-def rollout(prog: Program, key, theta, ctx, policy, cfg: TrainConfig) -> Episode:
-    """Step 1: one episode of `episode_length` steps with `policy` (GP in `ctx` held fixed),
-    deciding every `prog.hold` steps with the exploration noise `prog.noise`."""
-    hold, noise, length = prog.hold, prog.noise, prog.config.episode_length
-    restart = prog.config.episode_end == "restart" and prog.task.terminates
-    if noise is None or noise.name == "white":
-        def act(k, obs):
-            a, _, score, std = policy.act(k, theta, obs, ctx)
-            return a, (score, std)
-
-        o, o_next, a, r, alive, (scores, std) = run_episode(prog, key, act, cfg, length, hold,
-                                                            restart=restart)
-    elif noise.name == "parameter":
-        # the controller's weights perturbed by a draw per block of decisions, its score at the
-        # block's first decision (`exploration.parameter_scores`)
-        controller, u_max = prog.controller, prog.controller.u_max
-        std_p = jnp.exp(theta.log_std)
-        eps = exploration.sample_parameter_noise(noise, jax.random.fold_in(key, 1),
-                                                 theta.controller)
-        scale = std_p / u_max
-        blocks = jnp.arange(noise.length) // noise.block
-
-        def act(k, obs, j):
-            del k
-            draw = jax.tree_util.tree_map(lambda e: e[j], eps)
-            a = controller.apply(exploration.perturbed_parameters(theta.controller, draw, scale),
-                                 obs)
-            # the action's standard deviation at this state, to first order in the noise
-            _, grad = controller.value_and_grad(theta.controller, obs)
-            sq = sum(jnp.sum(g * g) for g in jax.tree_util.tree_leaves(grad))
-            return a, scale * jnp.sqrt(sq)
-
-        o, o_next, a, r, alive, std = run_episode(prog, key, act, cfg, length, hold, xs=blocks,
-                                                  restart=restart)
-        j_c, j_log_std = exploration.parameter_scores(noise, eps, std_p, u_max)
-        scores = policies.PolicyParams(controller=j_c, log_std=j_log_std)
-    else:
-        # correlated noise: drawn for the whole episode, then each decision's score from the
-        # policy's Gaussian parts (`exploration.correlated_scores`)
-        eps, xi = noise.sample(jax.random.fold_in(key, 1), prog.dtype)
-
-        def act(k, obs, e):
-            del k
-            mean, std, j_mean, j_std = policy.gaussian(theta, obs, ctx)
-            return mean + std * e, (j_mean, j_std, std)
-
-        o, o_next, a, r, alive, (j_mean, j_std, std) = run_episode(prog, key, act, cfg, length,
-                                                                   hold, xs=eps, restart=restart)
-        scores = exploration.correlated_scores(noise, eps, xi, j_mean, j_std)
-    scores = jax.tree_util.tree_map(lambda g: spread_decisions(g, hold, length), scores)
-    std = spread_decisions(std, hold, length, fill="hold")
-    if restart:  # every step is an environment step; `alive` holds the ends
-        return Episode(o, o_next, a, r, scores, std, None, alive)
-    if alive is not None:
-        scores = jax.tree_util.tree_map(
-            lambda g: g * alive.reshape((-1,) + (1,) * (g.ndim - 1)).astype(g.dtype), scores)
-    return Episode(o, o_next, a, r, scores, std, alive)
-
-
-def episode_returns(ep: Episode, cfg: TrainConfig) -> jax.Array:
-    """Returns-to-go of one `Episode` (H,), each stopping at its episode's end."""
-    return estimators.discounted_returns(ep.rewards, cfg.discount, ep.ends)
-
-
-def _mean_episode_return(eps: Episode) -> jax.Array:
-    """Mean undiscounted return of a batch of episodes (N, H): with restarts, the reward of the
-    slots over the episodes in them (the last one cut at the slots' end)."""
-    totals = jnp.sum(eps.rewards, axis=1)
-    if eps.ends is None:
-        return jnp.mean(totals)
-    count = jnp.sum(eps.ends, axis=1) + (~eps.ends[:, -1])
-    return jnp.sum(totals) / jnp.sum(count).astype(totals.dtype)
-
-
-def _alive_mean(values, alive):
-    """Mean of `values` over the steps before the episodes' ends (all of them if alive is None)."""
-    if alive is None:
-        return jnp.mean(values)
-    w = alive.astype(values.dtype)
-    return jnp.sum(values * w) / jnp.maximum(jnp.sum(w), 1.0)
-
-
-def episode_success(prog: Program, next_states, cfg: TrainConfig, rewards=None,
-                    ends=None) -> jax.Array:
-    """Whether one episode succeeded: on the pendulum, `swingup.success` of its visited states
-    (False if it is shorter than the hold time); on another task, its return reaching the task's
-    threshold (False without one). With `ends` (restarted episodes in the same slots): whether
-    one of them reached it."""
-    if prog.task.name != "pendulum":
-        if prog.task.threshold is None or rewards is None:
-            return jnp.zeros((), bool)
-        if ends is None:
-            return jnp.sum(rewards) >= prog.task.threshold
-        totals = estimators.discounted_returns(rewards, 1.0, ends)  # from each step to its end
-        starts = jnp.concatenate([jnp.ones((1,), bool), ends[:-1]])
-        return jnp.any(starts & (totals >= prog.task.threshold))
-    # the hold time in steps is static: it uses the control interval of make_train's config
-    dt = float(np.asarray(prog.config.pendulum.dt))
-    if swingup.hold_steps(dt, prog.config.success_hold_time) > next_states.shape[0]:
-        return jnp.zeros((), bool)
-    return swingup.success(next_states, dt, tolerance=cfg.success_tolerance,
-                           hold_time=prog.config.success_hold_time)
-
-
-def evaluate(prog: Program, key, theta, cfg: TrainConfig):
-    """`eval_episodes` fresh episodes of the deterministic controller c(s; theta_c): (success rate,
-    mean reward per step, mean undiscounted return); zeros when eval_episodes = 0."""
-    n = prog.config.eval_episodes
-    if n == 0:
-        zero = jnp.zeros((), prog.dtype)
-        return zero, zero, zero
-
-    def act(k, obs):
-        del k
-        return prog.controller.apply(theta.controller, obs), ()
-
-    keys = jax.random.split(key, n)
-    if prog.task.name == "pendulum":
-        traj = pendulum.batch_rollout(keys, cfg.pendulum, lambda k, s: act(k, s)[0],
-                                      prog.config.episode_length)
-        # batch_rollout's states are the states the actions were taken in; the last visited state
-        # is final_state: the visited states are states[1:] followed by final_state.
-        visited = jnp.concatenate([traj.states[:, 1:], traj.final_state[:, None]], axis=1)
-        rewards, alive = traj.rewards, None
-    else:
-        _, visited, _, rewards, alive, _ = jax.vmap(
-            lambda k: run_episode(prog, k, act, cfg, prog.config.episode_length))(keys)
-    ok = jax.vmap(lambda v, r: episode_success(prog, v, cfg, r))(visited, rewards)
-    return (jnp.mean(ok.astype(prog.dtype)), _alive_mean(rewards, alive),
-            jnp.mean(jnp.sum(rewards, axis=1)))
 
 
 def take_in_episode(gp, kernel, xs, returns, update_index, cfg: TrainConfig, valid=None):
@@ -453,59 +203,17 @@ def take_in_episode(gp, kernel, xs, returns, update_index, cfg: TrainConfig, val
     return gp, (~health.ok).astype(jnp.int32), health
 
 
-def gradient_estimate(prog: Program, state: TrainState, eps: Episode, returns, gp):
-    """Step 3: eq. 4 (REINFORCE) or eq. 9 (Q_GP of the updated GP), optionally with a baseline."""
-    static = prog.config
-    if static.uses_gp:
-        feats = jax.vmap(lambda s, a: _features(prog, s, a))(eps.states, eps.actions)
-        predict_mean = jax.vmap(jax.vmap(lambda x: sparse_gp.predict(gp, x, state.kernel)[0]))
-        weights = predict_mean(feats)
-    else:
-        weights = returns
-    baseline = None
-    if static.use_baseline:
-        if static.uses_gp:
-            apply = jax.vmap(jax.vmap(lambda s: prog.controller.apply(state.theta.controller, s)))
-            baseline = predict_mean(jax.vmap(lambda s, a: _features(prog, s, a))(
-                eps.states, apply(eps.states)))
-        else:
-            baseline = jnp.broadcast_to(returns.mean(axis=0, keepdims=True), returns.shape)
-    # the scores after an episode's end are 0 (`rollout`), so those steps add nothing
-    return estimators.policy_gradient(eps.scores, weights, baseline)
-
-
-def optimiser_step(state: TrainState, grad, cfg: TrainConfig):
-    """Step 4: clipped ascent step; skipped if the estimate is not finite; sigma clipped.
-
-    Returns:
-      (theta, opt_state, grad_norm, finite, at_bound).
-    """
-    grad_norm = optax.global_norm(grad)
-    finite = jnp.isfinite(grad_norm)
-    safe_grad = jax.tree_util.tree_map(lambda g: jnp.where(finite, g, 0.0), grad)
-    theta, opt_state = estimators.ascent_step(
-        make_optimizer(cfg), state.theta, state.opt_state, safe_grad
-    )
-    keep = lambda new, old: jnp.where(finite, new, old)  # noqa: E731
-    theta = jax.tree_util.tree_map(keep, theta, state.theta)
-    opt_state = jax.tree_util.tree_map(keep, opt_state, state.opt_state)
-    lo, hi = jnp.log(cfg.min_std), jnp.log(cfg.max_std)
-    log_std = jnp.clip(theta.log_std, lo, hi)
-    at_bound = (log_std <= lo) | (log_std >= hi)
-    return theta._replace(log_std=log_std), opt_state, grad_norm, finite, at_bound
-
-
 def _take_in(prog: Program, cfg: TrainConfig, state: TrainState, gp, ep: Episode, returns):
     """Step 2 for one episode of this update (a no-op without a GP): (gp, fired, error_ratio)."""
     static = prog.config
     fired, error_ratio = jnp.zeros((), jnp.int32), jnp.zeros((), prog.dtype)
-    if static.uses_gp:
+    if prog.method.uses_gp:
         # the decisions at least gp_stride steps apart join the GP (gp_stride 1, no hold: every
         # step; with a hold longer than the stride, every decision)
         k = gp_spacing(static.gp_stride, prog.hold)
         valid = None if ep.alive is None else ep.alive[::k]
         gp, fired, health = take_in_episode(
-            gp, state.kernel, _features(prog, ep.states, ep.actions)[::k], returns[::k],
+            gp, state.kernel, features(prog, ep.states, ep.actions)[::k], returns[::k],
             state.update_index, cfg, valid)
         error_ratio = health.mean_error_ratio
     return gp, fired, error_ratio
@@ -587,12 +295,13 @@ def roll_out_and_take_in_switched(progs, method_index, cfg: TrainConfig, state: 
 
 
 def one_update(prog: Program, cfg: TrainConfig, state: TrainState, roll_out=None):
-    """key -> roll-outs and GP updates (steps 1-2) -> gradient (3) -> optimiser (4) -> record.
+    """key -> roll-outs and GP take-in (steps 1-2) -> the method's improvement step (3-4) ->
+    records.
 
     `roll_out(cfg, state, keys)` replaces steps 1-2 (default: `roll_out_and_take_in` with
-    `prog`'s policy; `make_gp_methods_train` passes the switched one).
+    `prog`'s policy; `make_methods_train` passes the switched one).
     """
-    static = prog.config
+    static, method = prog.config, prog.method
     key, key_eps = jax.random.split(state.key)
     key_eval = jax.random.fold_in(key_eps, 1)  # a side stream: the episodes' keys stay as they were
     t = state.update_index
@@ -601,21 +310,16 @@ def one_update(prog: Program, cfg: TrainConfig, state: TrainState, roll_out=None
         gp, eps, returns, fired, error_ratio = roll_out_and_take_in(prog, cfg, state, keys)
     else:
         gp, eps, returns, fired, error_ratio = roll_out(cfg, state, keys)
-    grad = gradient_estimate(prog, state, eps, returns, gp)
-    theta, opt_state, grad_norm, finite, at_bound = optimiser_step(state, grad, cfg)
+    theta, opt_state, method_state, own = method.update(prog, cfg, state, Batch(eps, returns, gp))
 
     n_bv = sparse_gp.num_basis_vectors(gp)
     fresh = jnp.sum(gp.mask & (gp.timestamps == t))
     successes = jax.vmap(lambda v, r, e: episode_success(prog, v, cfg, r, e))(
         eps.next_states, eps.rewards, eps.ends)
     eval_success, eval_reward, eval_return = evaluate(prog, key_eval, state.theta, cfg)
-    record = UpdateRecord(
-        mean_reward=_alive_mean(eps.rewards, eps.alive),
-        exploration_std=_alive_mean(eps.exploration_std, eps.alive),
-        grad_norm=grad_norm,
-        grad_clipped=(finite & (grad_norm > cfg.max_grad_norm)).astype(jnp.int32),
-        nonfinite_grad=(~finite).astype(jnp.int32),
-        std_at_bound=at_bound.astype(jnp.int32),
+    record = record_type(method)(
+        mean_reward=alive_mean(eps.rewards, eps.alive),
+        exploration_std=alive_mean(eps.exploration_std, eps.alive),
         num_basis_vectors=n_bv,
         fresh_bv_share=jnp.where(n_bv > 0, fresh / jnp.maximum(n_bv, 1), 0.0).astype(prog.dtype),
         gp_guard=jnp.sum(fired),
@@ -623,10 +327,11 @@ def one_update(prog: Program, cfg: TrainConfig, state: TrainState, roll_out=None
         success_rate=jnp.mean(successes.astype(prog.dtype)),
         eval_success_rate=eval_success,
         eval_reward=eval_reward,
-        mean_return=_mean_episode_return(eps),
+        mean_return=mean_episode_return(eps),
         eval_return=eval_return,
+        **own,
     )
-    return TrainState(theta, opt_state, gp, state.kernel, key, t + 1), record
+    return TrainState(theta, opt_state, gp, state.kernel, key, t + 1, method_state), record
 
 
 # ------------------------------------------------------------------------------------------------
@@ -658,7 +363,7 @@ def collect_valid(prog: Program, key, cfg: TrainConfig):
     returns = jax.vmap(episode_returns, in_axes=(0, None))(eps, cfg)
     # every step's pair, held actions too (a held action's pair is its value for the rest of the
     # hold): the fit sees the exploration's actions at the cost in episodes of white noise
-    xs = jax.vmap(lambda s, a: _features(prog, s, a))(eps.states, eps.actions).reshape(-1, d)
+    xs = jax.vmap(lambda s, a: features(prog, s, a))(eps.states, eps.actions).reshape(-1, d)
     valid = None if eps.alive is None else eps.alive.reshape(-1)
     return xs, returns.reshape(-1), valid
 
@@ -722,21 +427,25 @@ def fit_prior(prog: Program, key, cfg: TrainConfig) -> GPPrior:
 
 
 def initial_state(prog: Program, key, cfg: TrainConfig, prior: GPPrior | None = None) -> TrainState:
-    static = prog.config
+    """The state before the first update: the prior (fitted here unless given; a placeholder for
+    a method without a Q-GP), the initial policy, its optimiser state and the method's own."""
+    static, method = prog.config, prog.method
     key_fit, key_run = jax.random.split(key)
     if prior is None:
-        if static.uses_gp:
+        if method.uses_gp:
             prior = fit_prior(prog, key_fit, cfg)
-        else:  # unused by REINFORCE
+        else:  # unused without a Q-GP
             prior = GPPrior(kernels.make_kernel_params(jnp.ones(prog.task.feature_dim), dtype=prog.dtype),
                             jnp.zeros((), prog.dtype))
     prior = jax.tree_util.tree_map(lambda a: jnp.asarray(a, prog.dtype), prior)
     theta = initial_theta(prog, cfg)
     opt_state = make_optimizer(cfg).init(theta)
-    # REINFORCE never reads its GP: a one-slot placeholder keeps the state's structure small.
-    capacity = static.gp_capacity if static.uses_gp else 1
+    # a method that never reads its GP keeps a one-slot placeholder: the state's structure is small
+    capacity = static.gp_capacity if method.uses_gp else 1
     gp = sparse_gp.init(capacity, prog.task.feature_dim, prog.dtype, prior_mean=prior.mean)
-    return TrainState(theta, opt_state, gp, prior.kernel, key_run, jnp.zeros((), jnp.int32))
+    method_state = method.init(prog, jax.random.fold_in(key_fit, 2), cfg)
+    return TrainState(theta, opt_state, gp, prior.kernel, key_run, jnp.zeros((), jnp.int32),
+                      method_state)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -808,43 +517,75 @@ def make_train(config: TrainConfig):
 # Every GP method of a configuration as one program.
 # ------------------------------------------------------------------------------------------------
 
-GP_METHODS = ("gp_pg", "guided_variance", "guided_direction")
+def program_family(cfg: TrainConfig) -> tuple[str, ...]:
+    """The registered methods that can share one compiled program with `cfg`'s method
+    (`methods.shares_program`) and accept `cfg`'s other fields: the branches of
+    `make_methods_train`. A method's records then do not depend on which of them a run asks for."""
+    own = methods.get(cfg.method)
+    family = []
+    for name in methods.names():
+        if not methods.shares_program(methods.get(name), own):
+            continue
+        try:
+            validate(cfg.replace(method=name))
+        except ValueError:
+            continue
+        family.append(name)
+    return tuple(family)
 
 
-def gp_methods_key(cfg: TrainConfig) -> TrainConfig:
-    """`cfg` with its method set to the first GP method: the configs of the GP methods of one
-    static configuration then share a pytree structure, and so one `make_gp_methods_train`
-    program (the method is its `method_index` argument)."""
-    if not cfg.uses_gp:
-        raise ValueError(f"make_gp_methods_train runs the GP methods {GP_METHODS}, not {cfg.method!r}")
-    return cfg.replace(method=GP_METHODS[0])
+def methods_key(cfg: TrainConfig) -> TrainConfig:
+    """`cfg` with its method set to the first of its `program_family`: the configs of a family's
+    methods with the same static fields then share a pytree structure, and so one
+    `make_methods_train` program (the method is its `method_index` argument)."""
+    return cfg.replace(method=program_family(cfg)[0])
 
 
-def make_gp_methods_train(config: TrainConfig):
-    """One program for every GP method (`GP_METHODS`) of `config`'s static fields.
+def method_index(cfg: TrainConfig) -> int:
+    """`cfg.method`'s branch in the `make_methods_train` program of `methods_key(cfg)`."""
+    return program_family(cfg).index(cfg.method)
+
+
+def make_methods_train(config: TrainConfig):
+    """One program for every method of `program_family(config)` with `config`'s static fields.
 
     Returns `run_chunk(state, method_index, cfg, num_updates=config.num_updates) -> (TrainState,
-    UpdateRecord)`: the updates of `make_train(cfg).run_chunk` for the method
-    `GP_METHODS[method_index]`, where `method_index` is a traced () int32 and `cfg` a traced
-    argument (pass `gp_methods_key(method_cfg)`: any GP method's config with these static fields).
-    The GP update, the gradient, the optimiser step and the records are traced once for all
-    methods; each method's roll-outs are a branch of a `lax.switch`
-    (`roll_out_and_take_in_switched`). `gpguided reproduce` runs its GP methods this way, which
-    compiles one program instead of three. The records are those of `make_train(cfg).run_chunk`
-    to rounding (XLA compiles the two programs differently), with the same draws.
+    records)`: the updates of `make_train(cfg).run_chunk` for the method `run_chunk.methods[
+    method_index]`, where `method_index` is a traced () int32 (`method_index(method_cfg)`) and
+    `cfg` a traced argument (pass `methods_key(method_cfg)`). The take-in, the improvement step
+    and the records are traced once for all of them; each method's roll-outs are a branch of a
+    `lax.switch` (`roll_out_and_take_in_switched`). `gpguided reproduce` runs the GP methods this
+    way, which compiles one program instead of three. The records are those of
+    `make_train(cfg).run_chunk` to rounding (XLA compiles the two programs differently), with
+    the same draws.
     """
-    key = gp_methods_key(config)
-    progs = tuple(make_program(key.replace(method=m)) for m in GP_METHODS)
+    key = methods_key(config)
+    family = program_family(key)
+    progs = tuple(make_program(key.replace(method=m)) for m in family)
 
     def run_chunk(state, method_index, cfg=key, num_updates=config.num_updates):
         if cfg.static_dict() != key.static_dict():
             raise ValueError(
-                "the config passed to make_gp_methods_train's run_chunk must be gp_methods_key of a "
+                "the config passed to make_methods_train's run_chunk must be methods_key of a "
                 f"config with its static fields: {cfg.static_dict()} != {key.static_dict()}")
         roll_out = lambda c, s, keys: roll_out_and_take_in_switched(progs, method_index, c, s, keys)  # noqa: E731
         return jax.lax.scan(lambda s, _: one_update(progs[0], cfg, s, roll_out), state, None,
                             length=num_updates)
 
     run_chunk.config = key
-    run_chunk.methods = GP_METHODS
+    run_chunk.methods = family
     return run_chunk
+
+
+def gp_methods_key(cfg: TrainConfig) -> TrainConfig:
+    """`methods_key` of a config of a method with a Q-GP prior (`ValueError` for another)."""
+    if not methods.get(cfg.method).uses_gp:
+        raise ValueError(f"make_gp_methods_train runs the methods with a Q-GP prior "
+                         f"{methods.gp_methods()}, not {cfg.method!r}")
+    return methods_key(cfg)
+
+
+def make_gp_methods_train(config: TrainConfig):
+    """`make_methods_train` for a method with a Q-GP prior (`ValueError` for another)."""
+    gp_methods_key(config)
+    return make_methods_train(config)

@@ -152,15 +152,15 @@ def _check_cli_run(proc, out, dtype, method, kept=False):
 def test_corrupt_checkpoint_and_kernels_are_set_aside(tmp_path):
     kw = dict(REPRODUCE_KW, methods=["gp_pg"], keep_checkpoints=True)
     first = R.reproduce(out_dir=str(tmp_path), progress=lambda m: None, **kw)
-    ckpt, kern = tmp_path / "checkpoint_gp_pg.npz", tmp_path / "kernels.npz"
+    ckpt, kern = tmp_path / "checkpoint_gp_pg.npz", tmp_path / "kernels_gp_pg.npz"
     ckpt.write_bytes(b"not a zip file")
     kern.write_bytes(ckpt.read_bytes()[:5])
     msgs = []
     again = R.reproduce(out_dir=str(tmp_path), progress=msgs.append, **kw)
     assert any("checkpoint_gp_pg.npz could not be read" in m for m in msgs), msgs
-    assert any("kernels.npz could not be read" in m for m in msgs), msgs
+    assert any("kernels_gp_pg.npz could not be read" in m for m in msgs), msgs
     assert (tmp_path / "checkpoint_gp_pg.npz.corrupt").exists()
-    assert (tmp_path / "kernels.npz.corrupt").exists()
+    assert (tmp_path / "kernels_gp_pg.npz.corrupt").exists()
     # started afresh, so the results are those of the first run
     assert again["summary"][0]["final_mean"] == first["summary"][0]["final_mean"]
     # a checkpoint with the right digest but missing arrays is set aside too

@@ -2,6 +2,7 @@
 
 import functools
 import json
+import os
 
 import jax
 import jax.numpy as jnp
@@ -11,8 +12,8 @@ import pytest
 from conftest import REPRODUCE_KW, TWO_DEVICE_ARGS, run_script
 
 from gpguided_jax import config as C
+from gpguided_jax import estimators, sharding, summaries
 from gpguided_jax import reproduce as R
-from gpguided_jax import sharding, summaries
 from gpguided_jax import train as T
 
 KEYS = jax.random.split(jax.random.PRNGKey(0), 2)
@@ -83,6 +84,22 @@ def test_every_method_runs_with_finite_records(tiny_runs, method):
     else:
         assert np.all(np.asarray(rec.num_basis_vectors) > 0)
         assert np.all(np.asarray(rec.num_basis_vectors) <= cfg.gp_capacity)
+
+
+@pytest.mark.xdist_group("tiny_runs")
+def test_the_paper_methods_records_equal_their_reference_file(tiny_runs):
+    """The tiny preset's records of the paper's four methods, run as `gpguided reproduce` runs
+    them, are those of tests/data/paper_methods_tiny_records.npz (float64): a change of the
+    training loop's structure must leave the paper's methods' numbers as they are. The
+    tolerance allows for another CPU's vector width, no more (the file's own machine reproduces
+    it bit for bit)."""
+    with np.load(os.path.join(os.path.dirname(__file__), "data",
+                              "paper_methods_tiny_records.npz")) as ref:
+        assert sorted(ref.files) == sorted(f"{m}/{k}" for m in C.METHODS[:4] for k in T.RECORD_FIELDS)
+        for name in ref.files:
+            method, field = name.split("/")
+            got = np.asarray(getattr(tiny_runs[method][2][1], field))
+            np.testing.assert_allclose(got, ref[name], rtol=1e-9, atol=1e-12, err_msg=name)
 
 
 @pytest.mark.xdist_group("tiny_runs")
@@ -331,7 +348,7 @@ def test_gp_guard_rejects_a_diverged_gp_and_counts_it():
     state = jax.jit(lambda k: T.initial_state(prog, k, cfg))(jax.random.PRNGKey(1))
     ep = jax.jit(lambda s: T.rollout(prog, jax.random.PRNGKey(2), s.theta,
                                      T.policy_context(cfg, s.gp, s.kernel), prog.policy, cfg))(state)
-    returns = T.estimators.discounted_returns(ep.rewards, cfg.discount)
+    returns = estimators.discounted_returns(ep.rewards, cfg.discount)
     xs = jax.vmap(T.kernels.state_action_features)(ep.states, ep.actions)
     take_in = jax.jit(lambda gp, t: T.take_in_episode(gp, state.kernel, xs, returns, t, cfg))
     gp, fired, _ = take_in(state.gp, 0)
@@ -360,8 +377,8 @@ def test_gp_stride_takes_every_kth_point_into_the_gp():
         for key_e in jax.random.split(key_eps, cfg.episodes_per_update):
             ctx = T.policy_context(cfg, gp, state.kernel)
             ep = T.rollout(prog, key_e, state.theta, ctx, prog.policy, cfg)
-            ret = T.estimators.discounted_returns(ep.rewards, cfg.discount)
-            feats = T._features(prog, ep.states, ep.actions)
+            ret = estimators.discounted_returns(ep.rewards, cfg.discount)
+            feats = T.features(prog, ep.states, ep.actions)
             gp, _, _ = T.take_in_episode(gp, state.kernel, feats[::3], ret[::3], state.update_index,
                                          cfg)
         return gp
@@ -484,7 +501,7 @@ def test_a_method_alone_equals_it_among_the_others(tmp_path):
     (program,) = R._SHARED_PROGRAMS.values()
     assert program._cache_size() == 1  # compiled once, for the three methods
     R.reproduce(out_dir=str(tmp_path / "alone"), methods=["guided_variance"], **kw)
-    # the second run (another directory: no kernels.npz) fits with the first run's program
+    # the second run (another directory: no kernels_<method>.npz) fits with the first run's program
     assert len(R._FIT_PROGRAMS) == 1 and next(iter(R._FIT_PROGRAMS.values()))._cache_size() == 1
     every, alone = (np.load(tmp_path / d / "results.npz") for d in ("all", "alone"))
     assert list(every["methods"]) == list(T.GP_METHODS)

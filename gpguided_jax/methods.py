@@ -1,0 +1,170 @@
+"""The method registry: every learning method is a declared `Method`, a value rather than a branch
+(design: docs/design.md#methods).
+
+A `Method` is, like an optax `GradientTransformation`, a small record of pure functions plus what
+the method declares about itself:
+
+  method_state = method.init(prog, key, cfg)                                   # its own state
+  theta, opt_state, method_state, records = method.update(prog, cfg, state, batch)
+
+`update` is the method's improvement step (steps 3-4 of Algorithm 1): it receives the update's
+episodes after the shared steps 1-2 (roll-outs with the method's policy, and the GP take-in when
+the method has a Q-GP prior) and returns the new policy parameters, optimiser state, its own state
+and its own records. Everything else a driver needs is declared:
+
+  policy          the policy that acts in the roll-outs (`policies.make_policy` name);
+  prior           what is fitted before learning: 'none' or 'q_gp' (the kernel and prior mean of
+                  the GP of Q(s, a), paper §VI);
+  fit_fields      the config fields that prior's fit reads (drivers share one fit between the
+                  methods of a run whose fit fields agree);
+  records         the method's own per-update records, beside `SHARED_RECORDS`;
+  explorations    the exploration schemes it accepts (`exploration.NOISES`);
+  compare_with    the methods its results are compared against (probability of improvement);
+  check           extra validation of a config of this method (raises `ValueError`).
+
+`train`, `reproduce`, `sweep`, the summaries and the studies read these declarations; none of them
+compares a method's name to a string. The paper's four methods are declared in
+`gpguided_jax.policy_gradient`; a new method is a module with its `Method` and a call of
+`register` (a test may register one too).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any, Callable, NamedTuple
+
+PRIORS = ("none", "q_gp")
+
+# The records every method has (`train.SharedRecord`): what the shared steps 1-2 and the
+# evaluation of the deterministic controller give, whatever the improvement step.
+SHARED_RECORDS = (
+    "mean_reward", "exploration_std", "num_basis_vectors", "fresh_bv_share", "gp_guard",
+    "gp_mean_error_ratio", "success_rate", "eval_success_rate", "eval_reward", "mean_return",
+    "eval_return",
+)
+
+# The config fields the Q-GP prior's fit reads (`train.fit_prior`): the fixed-noise policy's
+# roll-outs from the initial parameters on the task, their returns-to-go and the fit's settings.
+Q_GP_FIT_FIELDS = (
+    "env", "pendulum", "dtype", "controller", "episode_length", "episode_end", "hold_time",
+    "exploration", "noise_correlation_time", "noise_exponent", "noise_resample_time",
+    "init_log_std", "discount", "hyperfit_samples", "hyperfit_steps", "hyperfit_optimizer",
+    "hyperfit_subset",
+)
+
+
+class Method(NamedTuple):
+    """One learning method as the drivers see it (module notes).
+
+    Attributes:
+      name: the method's name (`TrainConfig.method`).
+      policy: the roll-out policy, a `policies.POLICY_NAMES` entry.
+      prior: 'none' or 'q_gp'.
+      init: `init(prog, key, cfg) -> method_state`, a pytree (`()` for none).
+      update: `update(prog, cfg, state, batch) -> (theta, opt_state, method_state, records)`,
+        `records` a dict of () arrays named by `records`.
+      records: the names of the method's own records, in order.
+      explorations: the exploration schemes the method accepts.
+      compare_with: the methods its final performance is compared against.
+      check: `check(cfg)` raises `ValueError` for a config this method cannot run (beyond the
+        fields every method shares); None: no extra check.
+      fit_fields: the config fields its prior's fit reads (empty without a prior).
+      explain_exploration: why a scheme outside `explorations` is refused (for the error).
+    """
+
+    name: str
+    policy: str
+    prior: str
+    init: Callable[..., Any]
+    update: Callable[..., Any]
+    records: tuple[str, ...]
+    explorations: tuple[str, ...]
+    compare_with: tuple[str, ...] = ()
+    check: Callable[[Any], None] | None = None
+    fit_fields: tuple[str, ...] = ()
+    explain_exploration: str = ""
+
+    @property
+    def uses_gp(self) -> bool:
+        """Whether the method has a Q-GP that takes in the update's episodes (steps 1-2)."""
+        return self.prior == "q_gp"
+
+
+_REGISTRY: dict[str, Method] = {}
+# modules that declare methods, imported on the first look-up (they import `train`'s pieces,
+# which import the config, which looks methods up: importing them here would be a cycle)
+_BUILTIN_MODULES = ("gpguided_jax.policy_gradient",)
+_loaded = False
+
+
+def _load_builtins() -> None:
+    global _loaded
+    if not _loaded:
+        _loaded = True
+        for name in _BUILTIN_MODULES:
+            importlib.import_module(name)
+
+
+def register(method: Method, *, replace: bool = False) -> Method:
+    """Adds `method` to the registry (returns it). Raises `ValueError` for a name already taken
+    (unless `replace`), an unknown prior, or records that clash with `SHARED_RECORDS`."""
+    if method.prior not in PRIORS:
+        raise ValueError(f"method {method.name!r}: unknown prior {method.prior!r}; choose from {PRIORS}")
+    clash = set(method.records) & set(SHARED_RECORDS)
+    if clash:
+        raise ValueError(f"method {method.name!r}: records {sorted(clash)} are shared records")
+    if method.prior == "q_gp" and not method.fit_fields:
+        raise ValueError(f"method {method.name!r}: a prior needs the fields its fit reads")
+    if method.name in _REGISTRY and not replace:
+        raise ValueError(f"method {method.name!r} is already registered")
+    _REGISTRY[method.name] = method
+    return method
+
+
+def unregister(name: str) -> None:
+    """Removes a registered method (a test's own)."""
+    _REGISTRY.pop(name, None)
+
+
+def get(name: str) -> Method:
+    """The registered `Method` called `name`; `ValueError` naming the choices if there is none."""
+    _load_builtins()
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown method {name!r}; choose from {names()}")
+    return _REGISTRY[name]
+
+
+def names() -> tuple[str, ...]:
+    """Every registered method's name, in registration order (the paper's four first)."""
+    _load_builtins()
+    return tuple(_REGISTRY)
+
+
+def gp_methods() -> tuple[str, ...]:
+    """The registered methods with a Q-GP prior."""
+    return tuple(m for m in names() if _REGISTRY[m].uses_gp)
+
+
+def comparisons(methods=None) -> tuple[tuple[str, str], ...]:
+    """The (x, y) pairs whose probability of improvement P(x > y) is reported: each method
+    against the ones it declares in `compare_with`, among `methods` (default: all)."""
+    chosen = names() if methods is None else tuple(methods)
+    # grouped by the method compared against, so that each group reads as one baseline's column
+    return tuple((x, y) for y in chosen for x in chosen
+                 if x in _REGISTRY and y in _REGISTRY[x].compare_with)
+
+
+def fit_inputs(cfg) -> dict | None:
+    """The values of the config fields the prior of `cfg.method` reads (JSON-ready), or None for
+    a method without a prior: two configs with equal fit inputs share one fitted prior."""
+    method = get(cfg.method)
+    if not method.fit_fields:
+        return None
+    full = cfg.to_json_dict()
+    return {"prior": method.prior, **{f: full[f] for f in method.fit_fields}}
+
+
+def shares_program(a: Method, b: Method) -> bool:
+    """Whether two methods can be branches of one compiled program (`train.make_methods_train`):
+    the same prior, initial state and improvement step; only their policies differ."""
+    return a.prior == b.prior and a.init is b.init and a.update is b.update
