@@ -131,12 +131,18 @@ def _reproduce(args) -> int:
                         ("optimism", "optimism"), ("episode_end", "episode_end")):
         if getattr(args, flag) is not None:
             overrides[field] = getattr(args, flag)
+    fields = _parse_overrides(args.set)
+    both = sorted(set(fields) & set(overrides) | set(fields) & {"method", "dtype"})
+    if both:
+        raise SystemExit(f"gpguided reproduce: error: --set {', '.join(both)}: given by its own "
+                         "option too")
+    overrides.update(fields)
     from gpguided_jax import config
 
     try:  # a config that makes no sense (an environment that is not supported) is one line
         for m in args.methods:
             config.preset(args.preset, method=m, dtype=args.dtype, **overrides)
-    except ValueError as e:
+    except (TypeError, ValueError) as e:
         raise SystemExit(f"gpguided reproduce: error: {e}") from None
     out = reproduce.reproduce(
         preset=args.preset,
@@ -372,6 +378,10 @@ def _add_reproduce(sub) -> None:
                      help="on a task whose episodes end early: mask the slots after the end "
                      "(default) or restart the environment in them, so that every slot is an "
                      "environment step")
+    rep.add_argument("--set", nargs="+", default=None, metavar="FIELD=VALUE",
+                     help="any other TrainConfig field (or discount_horizon, in seconds) for "
+                          "every method, e.g. --set num_updates=100 learning_rate=0.01; applied "
+                          "after the preset and the method's tuned settings")
     rep.add_argument("--seeds", type=positive_int, default=10, help="number of seeds")
     rep.add_argument("--seed-start", type=non_negative_int, default=REPORTED_SEED_START,
                      help="first seed (the reported results use seeds from 1000 on; the presets "

@@ -110,6 +110,23 @@ def test_exploration_flags_reach_the_config(monkeypatch):
               "--env", "gymnax:MountainCarContinuous-v0", "--episode-end", "restart"])
     assert seen["overrides"] == {"env": "gymnax:MountainCarContinuous-v0",
                                  "episode_end": "restart"}
+    cli.main(["reproduce", "--preset", "tiny", "--methods", "gp_pg", "--compile-cache", "none",
+              "--hold-time", "0.01", "--set", "num_updates=3", "learning_rate=0.5",
+              "use_baseline=true", "discount_horizon=0.2"])
+    assert seen["overrides"] == {"hold_time": 0.01, "num_updates": 3, "learning_rate": 0.5,
+                                 "use_baseline": True, "discount_horizon": 0.2}
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--set", "no_such_field=1"], "unknown TrainConfig field(s): ['no_such_field']"),
+    (["--set", "num_updates"], "--set expects FIELD=VALUE, got 'num_updates'"),
+    (["--set", "num_updates=0"], "TrainConfig.num_updates: must be a positive integer, got 0"),
+    (["--hold-time", "0.1", "--set", "hold_time=0.2"], "--set hold_time: given by its own option"),
+])
+def test_bad_set_is_refused_in_one_line(args, message):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["reproduce", "--preset", "tiny", "--compile-cache", "none", *args])
+    assert message in str(exc.value) and "\n" not in str(exc.value)
 
 
 def test_import_does_not_touch_the_x64_flag():
