@@ -190,13 +190,14 @@ def gp_method_args(cfg: config_lib.TrainConfig, seeds: int, mesh: Mesh):
 
 
 def fit_priors(cfgs: dict[str, config_lib.TrainConfig], seeds, out_dir, mesh, progress,
-               seed_loop: str = "auto") -> dict[str, train_lib.GPPrior]:
+               seed_loop: str = "auto", seconds: dict | None = None) -> dict[str, train_lib.GPPrior]:
     """The fitted prior of each method of `cfgs` (method -> config) that declares one.
 
     A method's prior is read from `kernels_<method>.npz` if it was fitted for these seeds and the
     method's fit inputs (`methods.fit_inputs`: the config fields its fit reads), else fitted and
     saved. Methods whose fit inputs agree share one fit; a method whose tuned settings change
-    the fit's data (its discount, initial noise, hold, ...) gets its own.
+    the fit's data (its discount, initial noise, hold, ...) gets its own. `seconds`, if given,
+    receives each method's fit time (0 for a prior read from its file or shared).
     """
     loop = sharding.resolve_seed_loop(seed_loop, mesh)
     fitted: dict[str, train_lib.GPPrior] = {}  # fit digest -> prior
@@ -212,8 +213,11 @@ def fit_priors(cfgs: dict[str, config_lib.TrainConfig], seeds, out_dir, mesh, pr
             kernel = kernels_lib.KernelParams(*(saved[k] for k in kernels_lib.KernelParams._fields))
             priors[m] = fitted.setdefault(digest, train_lib.GPPrior(kernel, saved["prior_mean"]))
             continue
+        t0 = time.perf_counter()
         if digest not in fitted:
             fitted[digest] = _fit(cfg, seeds, mesh, loop, progress)
+        if seconds is not None:
+            seconds[m] = time.perf_counter() - t0
         priors[m] = prior = fitted[digest]
         if distributed.is_main():
             checkpoints.atomic_savez(path, digest=digest, seeds=np.asarray(seeds),
@@ -396,8 +400,9 @@ def reproduce(
     unfinished, so that the same call resumes it, and deleted once the results are written
     (unless `keep_checkpoints`).
 
-    Returns a dict with the summary and comparison rows, their markdown tables and the output
-    paths; `complete` is False when `max_chunks` ended a method early (then nothing but
+    Returns a dict with the summary and comparison rows, their markdown tables, the output paths
+    and `wall_s`, method -> seconds of its fit (when it made one) and its run in this call,
+    compilation included; `complete` is False when `max_chunks` ended a method early (then nothing but
     checkpoints is written). With several processes (`distributed.initialize`) the seeds are
     sharded over the devices of all of them; each keeps its own checkpoint, and process 0 reports
     progress and writes config.json, results.npz, the CSV files and the figures. The GP methods
@@ -430,9 +435,11 @@ def _reproduce(preset, seeds, methods, out_dir, dtype, chunk_size, num_devices, 
              "devices": [str(d) for d in mesh.devices.flat], "seed_loop": loop,
              "gp_program": gp_program, "methods": {m: c.to_json_dict() for m, c in cfgs.items()}}, indent=2))
 
-    priors = fit_priors(cfgs, seeds, out_dir, mesh, progress, loop)
+    wall = {m: 0.0 for m in methods}
+    priors = fit_priors(cfgs, seeds, out_dir, mesh, progress, loop, seconds=wall)
     records = {}
     for m in methods:
+        t0 = time.perf_counter()
         rec, _ = run_method(cfgs[m], seeds, out_dir, chunk_size=chunk_size, mesh=mesh,
                             kernels=priors.get(m),
                             max_chunks=max_chunks, progress=progress, seed_loop=loop,
@@ -440,8 +447,10 @@ def _reproduce(preset, seeds, methods, out_dir, dtype, chunk_size, num_devices, 
         if rec["mean_reward"].shape[1] < cfgs[m].num_updates:
             return {"complete": False}
         records[m] = rec
+        wall[m] += time.perf_counter() - t0
 
     out = _summary(cfgs, records)
+    out["wall_s"] = wall
     if main:
         out["figures"] = _write_results(out_dir, cfgs, seeds, records, out)
     return out
