@@ -118,13 +118,17 @@ class GymnaxEnv(Env):
     gymnax's own state is `State.pipeline_state` (brax's `AutoResetWrapper` restores it at an
     episode's end), its step key `State.info["rng"]`. gymnax's time limit is lifted: brax's
     `EpisodeWrapper` truncates the episodes instead, so that `done` is a true termination (the car
-    at the flag) and a trainer bootstraps its value at the time limit. Observations and rewards are
-    float32.
+    at the flag) and a trainer bootstraps its value at the time limit. The step is the task's:
+    gymnax's, with gymnasium's rule where gymnax's differs (`tasks.GYMNASIUM_CORRECTIONS`: the
+    car's left wall). Observations and rewards are float32.
     """
 
     def __init__(self, env_id: str, backend: str = "jax"):
         import gymnax
 
+        from gpguided_jax import tasks
+
+        self._correct = tasks.GYMNASIUM_CORRECTIONS.get(env_id)
         self._env, params = gymnax.make(env_id)
         space = self._env.action_space(params)
         self._max_action = float(max(abs(float(space.low)), abs(float(space.high))))
@@ -143,6 +147,8 @@ class GymnaxEnv(Env):
         key, key_next = jax.random.split(state.info["rng"])
         a = jnp.reshape(jnp.clip(action, -1.0, 1.0), (1,)) * self._max_action
         obs, s, reward, done, _ = self._env.step_env(key, state.pipeline_state, a, self._params)
+        if self._correct is not None:
+            s, obs = self._correct(self._env, s, self._params)
         state.info.update(rng=key_next)
         return state.replace(pipeline_state=s, obs=jnp.asarray(obs, jnp.float32),
                              reward=jnp.asarray(reward, jnp.float32),

@@ -16,10 +16,21 @@ Three kinds of task are supported (`make_task(name)`):
   the config's traced `pendulum` field.
 * ``gymnax:<id>``: a gymnax environment with a one-dimensional continuous action, used from gymnax
   itself (``pip install gpguided_jax[gymnax]``): Pendulum-v1 and MountainCarContinuous-v0.
-  gymnax's `step_env` (without its automatic reset) steps it.
+  gymnax's `step_env` (without its automatic reset) steps it. Both tasks are gymnasium's
+  environments of the same names, on which the published reference numbers are measured:
+  Pendulum-v1 is gymnax's step as it is; MountainCarContinuous-v0 is gymnax's step with
+  gymnasium's left wall added (`gymnasium_car_wall`). gymnasium stops a car that reaches the wall
+  moving left (its velocity becomes 0 at the position -1.2); gymnax 1.0.1's step zeroes a negative
+  velocity at or past the goal instead, and leaves the car at the wall moving left. Its rule at the
+  goal changes nothing within an episode: a car is at or past the goal moving left only after a
+  step that began past the goal, and it first gets there moving right, which ends the episode
+  (tests/test_task_reference.py steps both tasks beside gymnasium's environments).
 * ``brax:<name>``: a brax environment through brax's own `Env` (``reset(rng)``, ``step(state,
   action)``): inverted_pendulum and inverted_double_pendulum. brax's environments neither take a key
   in `step` nor clip the action; the action is clipped to brax's range [-1, 1] before the step.
+  They are brax's own models, not gymnasium's MuJoCo InvertedPendulum-v5 and
+  InvertedDoublePendulum-v5: the integrator, the double pendulum's time step and the single
+  pendulum's reward at its end differ (docs/standard_tasks.md, "What each task is").
 
 Episodes have a fixed length (`TrainConfig.episode_length`). An environment that terminates early
 (a brax pendulum that falls, the car that reaches the goal) is frozen in its last state from then
@@ -184,13 +195,34 @@ def _gymnax_adapter(env_id: str) -> _Adapter:
         obs, state = env.reset_env(key, params)
         return state, obs
 
+    correct = GYMNASIUM_CORRECTIONS.get(env_id)
+
     def step(key, state, action):
         obs, state, reward, done, _ = env.step_env(key, state, jnp.reshape(action, (1,)), params)
+        if correct is not None:
+            state, obs = correct(env, state, params)
         return state, obs, reward, done
 
     dt = float(getattr(params, "dt", 1.0))  # an environment without a time (the car): 1 s a step
     return _Adapter(int(np.prod(env.observation_space(params).shape)), dt, max_action,
                     int(params.max_steps_in_episode), reset, step)
+
+
+def gymnasium_car_wall(env, state, params):
+    """gymnasium's left wall on the state gymnax's MountainCarContinuous-v0 step returns: a car at
+    the wall (its position clipped to `min_position`) moving left stops, as in gymnasium's
+    ``if position == min_position and velocity < 0: velocity = 0``. gymnax 1.0.1's step leaves it
+    moving left. The reward and the end are gymnax's as they are: both depend on the velocity only
+    at the goal, far from the wall. Returns the state and its observation."""
+    stopped = (state.position <= params.min_position) & (state.velocity < 0)
+    state = state.replace(velocity=jnp.where(stopped, jnp.zeros_like(state.velocity), state.velocity))
+    return state, env.get_obs(state)
+
+
+# The gymnax environments whose step differs from gymnasium's environment of the same name, with
+# what is applied after gymnax's step: (env, state, params) -> (state, observation). The tasks
+# and `brax_env.GymnaxEnv` (brax's trainers) both apply it.
+GYMNASIUM_CORRECTIONS = {"MountainCarContinuous-v0": gymnasium_car_wall}
 
 
 def _brax_adapter(name: str) -> _Adapter:
