@@ -330,7 +330,7 @@ def _add_demo(sub) -> None:
 
 
 def _add_reproduce(sub) -> None:
-    from gpguided_jax.config import METHODS, PRESETS
+    from gpguided_jax.config import METHODS, PAPER_METHODS, PRESETS
     from gpguided_jax.exploration import NOISES
 
     rep = sub.add_parser(
@@ -386,8 +386,9 @@ def _add_reproduce(sub) -> None:
     rep.add_argument("--seed-start", type=non_negative_int, default=REPORTED_SEED_START,
                      help="first seed (the reported results use seeds from 1000 on; the presets "
                      "were tuned on seeds below)")
-    rep.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS),
-                     metavar="METHOD", help=f"methods to run, of {', '.join(METHODS)}")
+    rep.add_argument("--methods", nargs="+", default=list(PAPER_METHODS), choices=list(METHODS),
+                     metavar="METHOD", help=f"methods to run, of {', '.join(METHODS)} (default: "
+                                            "the paper's)")
     rep.add_argument("--out", default="results/paper", help="output directory")
     rep.add_argument("--dtype", default="float64", choices=["float64", "float32"],
                      help="computation dtype of every array")

@@ -56,6 +56,7 @@ STATIC_FIELDS = (
     "hold_time",
     "optimism",
     "episode_end",
+    "critic_steps",
 )
 
 
@@ -124,6 +125,8 @@ class TrainConfig:
       optimism: kappa of guided_direction's optimistic score: its candidates are scored by
         Q_GP(s, a_j) + kappa sigma(s, a_j) (sigma the GP's latent standard deviation) instead of
         Q_GP(s, a_j). 0 (default): the paper. The other methods ignore it.
+      critic_steps: gp_critic's K, the surrogate steps against Q_GP per update (`critic`; 0: gp_pg
+        exactly). The other methods ignore it.
 
     Traced fields (leaves; sweepable by vmap):
       learning_rate: eta of the ascent step.
@@ -148,6 +151,9 @@ class TrainConfig:
       candidate_floor: lower bound on the candidate variance (N m)^2.
       success_tolerance: |phi - pi| bound (rad) of a swing-up success.
       pendulum: `PendulumParams` (physics, reward noise, start-state distribution).
+      critic_learning_rate: gp_critic's Adam step size on the surrogate.
+      trust_region: gp_critic's delta, the bound on the mean KL (nats) between the policy that
+        gathered an update's episodes and the improved one, over the update's decision states.
     """
 
     # static
@@ -177,6 +183,7 @@ class TrainConfig:
     hold_time: float = 0.0
     optimism: float = 0.0
     episode_end: str = "mask"
+    critic_steps: int = 50
     # traced
     learning_rate: Any = 2e-4
     max_grad_norm: Any = 300.0
@@ -195,6 +202,8 @@ class TrainConfig:
     candidate_floor: Any = 0.01
     success_tolerance: Any = 0.3
     pendulum: Any = None
+    critic_learning_rate: Any = 0.01
+    trust_region: Any = 0.05
 
     def replace(self, **changes) -> TrainConfig:
         return dataclasses.replace(self, **changes)
@@ -237,7 +246,7 @@ jax.tree_util.register_dataclass(
 _POSITIVE = ("learning_rate", "max_grad_norm", "success_tolerance", "min_std", "max_std",
              "age_scale", "guided_variance_scale",
              "guided_variance_floor", "inverse_temperature", "energy_width", "candidate_scale",
-             "candidate_floor")
+             "candidate_floor", "critic_learning_rate", "trust_region")
 _NON_NEGATIVE = ("age_penalty", "novelty_tol")
 
 
@@ -268,9 +277,10 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         _fail("hyperfit_optimizer", f"must be 'adam' or 'lbfgs', got {cfg.hyperfit_optimizer!r}")
     if cfg.num_candidates < 2:
         _fail("num_candidates", f"the Gibbs policy needs at least 2 candidates, got {cfg.num_candidates}")
-    if isinstance(cfg.eval_episodes, bool) or not isinstance(cfg.eval_episodes, (int, np.integer)) \
-            or cfg.eval_episodes < 0:
-        _fail("eval_episodes", f"must be an integer >= 0, got {cfg.eval_episodes!r}")
+    for f in ("eval_episodes", "critic_steps"):
+        v = getattr(cfg, f)
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+            _fail(f, f"must be an integer >= 0, got {v!r}")
     if not isinstance(cfg.success_hold_time, (int, float)) or not cfg.success_hold_time > 0:
         _fail("success_hold_time", f"must be > 0 seconds, got {cfg.success_hold_time!r}")
     if cfg.episode_end not in EPISODE_ENDS:
@@ -333,6 +343,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
 def __getattr__(name):
     if name == "METHODS":  # every registered method (`gpguided_jax.methods`), the paper's first
         return methods.names()
+    if name == "PAPER_METHODS":  # the paper's four (Fig. 5; what `reproduce` runs by default)
+        return methods.paper()
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 

@@ -20,7 +20,9 @@ and its own records. Everything else a driver needs is declared:
   records         the method's own per-update records, beside `SHARED_RECORDS`;
   explorations    the exploration schemes it accepts (`exploration.NOISES`);
   compare_with    the methods its results are compared against (probability of improvement);
-  check           extra validation of a config of this method (raises `ValueError`).
+  check           extra validation of a config of this method (raises `ValueError`);
+  paper           whether it is one of the paper's methods (what `gpguided reproduce` runs by
+                  default, Fig. 5).
 
 `train`, `reproduce`, `sweep`, the summaries and the studies read these declarations; none of them
 compares a method's name to a string. The paper's four methods are declared in
@@ -70,6 +72,7 @@ class Method(NamedTuple):
         fields every method shares); None: no extra check.
       fit_fields: the config fields its prior's fit reads (empty without a prior).
       explain_exploration: why a scheme outside `explorations` is refused (for the error).
+      paper: one of the paper's methods (Fig. 5; `paper()`).
     """
 
     name: str
@@ -83,6 +86,7 @@ class Method(NamedTuple):
     check: Callable[[Any], None] | None = None
     fit_fields: tuple[str, ...] = ()
     explain_exploration: str = ""
+    paper: bool = False
 
     @property
     def uses_gp(self) -> bool:
@@ -138,6 +142,11 @@ def names() -> tuple[str, ...]:
     """Every registered method's name, in registration order (the paper's four first)."""
     _load_builtins()
     return tuple(_REGISTRY)
+
+
+def paper() -> tuple[str, ...]:
+    """The paper's methods (Fig. 5), in registration order."""
+    return tuple(m for m in names() if _REGISTRY[m].paper)
 
 
 def gp_methods() -> tuple[str, ...]:

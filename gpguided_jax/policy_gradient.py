@@ -94,7 +94,8 @@ def _make_update(q_gp: bool):
     return update
 
 
-def _no_state(prog, key, cfg):
+def no_state(prog, key, cfg):
+    """The initial state of a method with no state of its own: ()."""
     del prog, key, cfg
     return ()
 
@@ -106,20 +107,20 @@ _ALL_NOISES = exploration.NOISES
 _GAUSSIAN_NOISES = tuple(n for n in exploration.NOISES if n != "parameter")
 
 methods.register(methods.Method(
-    name="reinforce", policy="fixed_noise", prior="none", init=_no_state,
-    update=reinforce_update, records=RECORDS, explorations=_ALL_NOISES))
+    name="reinforce", policy="fixed_noise", prior="none", init=no_state,
+    update=reinforce_update, records=RECORDS, explorations=_ALL_NOISES, paper=True))
 methods.register(methods.Method(
-    name="gp_pg", policy="fixed_noise", prior="q_gp", init=_no_state, update=q_gp_update,
+    name="gp_pg", policy="fixed_noise", prior="q_gp", init=no_state, update=q_gp_update,
     records=RECORDS, explorations=_ALL_NOISES, compare_with=("reinforce",),
-    fit_fields=methods.Q_GP_FIT_FIELDS))
+    fit_fields=methods.Q_GP_FIT_FIELDS, paper=True))
 methods.register(methods.Method(
-    name="guided_variance", policy="guided_variance", prior="q_gp", init=_no_state,
+    name="guided_variance", policy="guided_variance", prior="q_gp", init=no_state,
     update=q_gp_update, records=RECORDS, explorations=_GAUSSIAN_NOISES,
-    compare_with=("reinforce", "gp_pg"), fit_fields=methods.Q_GP_FIT_FIELDS,
+    compare_with=("reinforce", "gp_pg"), fit_fields=methods.Q_GP_FIT_FIELDS, paper=True,
     explain_exploration="'parameter' noise perturbs the fixed-noise policy's controller"))
 methods.register(methods.Method(
-    name="guided_direction", policy="gibbs", prior="q_gp", init=_no_state, update=q_gp_update,
+    name="guided_direction", policy="gibbs", prior="q_gp", init=no_state, update=q_gp_update,
     records=RECORDS, explorations=("white",), compare_with=("reinforce", "gp_pg"),
-    fit_fields=methods.Q_GP_FIT_FIELDS,
+    fit_fields=methods.Q_GP_FIT_FIELDS, paper=True,
     explain_exploration="guided_direction draws its candidates afresh at each decision (hold "
                         "its choice with hold_time)"))

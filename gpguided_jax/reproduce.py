@@ -42,9 +42,10 @@ import jax
 import numpy as np
 from jax.sharding import Mesh
 
-from gpguided_jax import checkpoints, distributed, methods, plots, sharding, summaries
+from gpguided_jax import checkpoints, distributed, plots, sharding, summaries
 from gpguided_jax import config as config_lib
 from gpguided_jax import kernels as kernels_lib
+from gpguided_jax import methods as methods_lib
 from gpguided_jax import train as train_lib
 
 GP_PROGRAMS = ("shared", "per_method")
@@ -95,7 +96,7 @@ def fit_program(train, mesh: Mesh, seed_loop: str):
     """The jitted hyperparameter fit `fit(keys) -> GPPrior` of `train` (from `train.make_train`)
     over the sharded seed axis, kept for the process: one for every GP method of a config."""
     loop = sharding.resolve_seed_loop(seed_loop, mesh)
-    key = (json.dumps(methods.fit_inputs(train.config), sort_keys=True), mesh, loop)
+    key = (json.dumps(methods_lib.fit_inputs(train.config), sort_keys=True), mesh, loop)
     return _kept(_FIT_PROGRAMS, key,
                  lambda: sharding.per_seed_program(train.fit_kernel_for_seed, mesh, loop))
 
@@ -203,7 +204,7 @@ def fit_priors(cfgs: dict[str, config_lib.TrainConfig], seeds, out_dir, mesh, pr
     fitted: dict[str, train_lib.GPPrior] = {}  # fit digest -> prior
     priors = {}
     for m, cfg in cfgs.items():
-        inputs = methods.fit_inputs(cfg)
+        inputs = methods_lib.fit_inputs(cfg)
         if inputs is None:
             continue
         digest = checkpoints.digest(inputs, list(map(int, seeds)), loop)
@@ -379,7 +380,7 @@ def _chunk_progress(cfg: config_lib.TrainConfig, rec, n_real: int, updates_done:
 def reproduce(
     preset: str = "paper",
     seeds: Sequence[int] = tuple(range(10)),
-    methods: Sequence[str] = config_lib.METHODS,
+    methods: Sequence[str] | None = None,
     out_dir: str = "results/paper",
     *,
     dtype: str = "float64",
@@ -392,8 +393,8 @@ def reproduce(
     gp_program: str = "shared",
     keep_checkpoints: bool = False,
 ) -> dict:
-    """Runs every method for every seed and writes results.npz, config.json, summary.csv,
-    comparisons.csv and Fig. 5 to `out_dir`.
+    """Runs every method (default: the paper's) for every seed and writes results.npz,
+    config.json, summary.csv, comparisons.csv and Fig. 5 to `out_dir`.
 
     `out_dir` is locked for the run (`checkpoints.open_out_dir`: a second run writing to it is
     refused with `checkpoints.OutDirError`). Each method's checkpoints are kept while the run is
@@ -410,6 +411,7 @@ def reproduce(
     `chunk_program`).
     """
     _check_gp_program(gp_program)
+    methods = list(methods_lib.paper() if methods is None else methods)
     with checkpoints.open_out_dir(out_dir):
         out = _reproduce(preset, list(map(int, seeds)), list(methods), out_dir, dtype, chunk_size,
                          num_devices, max_chunks, overrides, progress, seed_loop, gp_program)

@@ -1,0 +1,190 @@
+"""gp_critic: many improvement steps per update against the GP critic Q_GP, in a KL trust region
+(design: docs/design.md#critic).
+
+After the shared steps 1-2 and gp_pg's own step (eq. 9), the fixed-noise Gaussian policy
+a ~ N(c(s; theta_c), sigma^2) takes `critic_steps` Adam steps on the deterministic surrogate
+
+  J(theta) = (1/N) sum_n E_{a ~ N(c(s_n), sigma^2)} mu_Q(s_n, a)
+
+over the N decision states of the update's episodes, with no new samples. For the ARD
+squared-exponential kernel and mu_Q(x) = m0 + k(B, x)^T alpha, the expectation is closed form
+(`expected_q`): the kernel's action factor integrates to
+
+  E_a exp(-(a - b_i)^2 / (2 l_a^2)) = (l_a^2 / (l_a^2 + sigma^2))^(1/2)
+                                       exp(-(c - b_i)^2 / (2 (l_a^2 + sigma^2))),
+
+with b_i the action coordinate of basis vector i and l_a the action length-scale (the integral
+PILCO's moment matching uses). Its gradient in (c, log sigma) is hand-derived
+(`expected_q_and_grad`) and reaches theta_c through the controller's own gradient. The critic
+holds only near the data, so the steps stay in a trust region: the mean over those states of
+KL(pi_data || pi_theta) between the policy that gathered the episodes and the new one is at most
+`trust_region`, enforced by a backtracking line search on the whole move of the K steps
+(`improve`; the largest fraction 2^-j of it, j = 0..`LINE_SEARCH_HALVINGS`, that keeps the
+bound, else none). sigma stays in [min_std, max_std]. With `critic_steps` = 0 the method is gp_pg
+bit for bit.
+
+The exploration it accepts is every scheme whose marginal action at a decision point is
+N(c(s), sigma^2): white, Ornstein-Uhlenbeck and coloured noise, with or without held actions
+(the surrogate then runs over the decision states, the GP's own inputs).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from gpguided_jax import kernels, methods, policy_gradient, sparse_gp
+
+LINE_SEARCH_HALVINGS = 10
+RECORDS = policy_gradient.RECORDS + ("critic_gain", "critic_kl", "critic_step_fraction")
+
+
+def state_factors(gp: sparse_gp.SparseGPState, kernel: kernels.KernelParams, x_state) -> jax.Array:
+    """The kernel's state part against every basis vector, sigma_f^2 exp(-1/2 sum_{d<D} ((x_d -
+    b_id) / l_d)^2), 0 on inactive slots: (S,). `x_state` is the GP input without its last
+    (action) coordinate, (D - 1,)."""
+    z = (x_state - gp.basis_vectors[:, :-1]) / kernel.lengthscales[:-1]
+    k = kernel.signal_variance * jnp.exp(-0.5 * jnp.sum(z * z, axis=-1))
+    return jnp.where(gp.mask, k, jnp.zeros_like(k))
+
+
+def expected_q(gp: sparse_gp.SparseGPState, kernel: kernels.KernelParams, factors, mean, std):
+    """E_{a ~ N(mean, std^2)} mu_Q(s, a) for one state (its `state_factors`), closed form."""
+    return expected_q_and_grad(gp, kernel, factors, mean, std)[0]
+
+
+def expected_q_and_grad(gp, kernel, factors, mean, std):
+    """`expected_q` and its hand-derived derivatives in the mean action and in log std.
+
+    With v = l_a^2 + std^2, d = mean - b_i and g_i = (l_a^2 / v)^(1/2) exp(-d^2 / (2 v)):
+    dg_i/dmean = -g_i d / v and dg_i/dlog std = g_i std^2 (d^2 / v - 1) / v.
+
+    Returns:
+      (value, d value / d mean, d value / d log std), scalars.
+    """
+    la2 = kernel.lengthscales[-1] ** 2
+    var = std * std
+    v = la2 + var
+    d = mean - gp.basis_vectors[:, -1]
+    g = jnp.sqrt(la2 / v) * jnp.exp(-0.5 * d * d / v)
+    w = factors * gp.alpha * g
+    value = gp.prior_mean + jnp.sum(w)
+    return value, -jnp.sum(w * d) / v, jnp.sum(w * (d * d / v - 1.0)) * var / v
+
+
+def gaussian_kl(mean_p, std_p, mean_q, std_q):
+    """KL(N(mean_p, std_p^2) || N(mean_q, std_q^2)) = ((mean_p - mean_q)^2 / std_q^2 + e^x - 1 - x)
+    / 2 with x = 2 log(std_p / std_q).
+
+    e^x - 1 - x is written as x^2/2 h(x), h from its series where |x| is small, so that a small KL
+    (the trust region's regime) keeps its relative precision instead of cancelling."""
+    x = 2.0 * (jnp.log(std_p) - jnp.log(std_q))
+    small = jnp.abs(x) < 1e-2
+    safe = jnp.where(small, 1.0, x)
+    h = jnp.where(small, 1.0 + x / 3.0 + x * x / 12.0, 2.0 * (jnp.expm1(safe) - safe) / (safe * safe))
+    d = (mean_p - mean_q) / std_q
+    return 0.5 * (d * d + 0.5 * x * x * h)
+
+
+def surrogate_and_grad(controller, gp, kernel, theta, states, factors, weights):
+    """J(theta) over the states (weighted mean of `expected_q`) and its gradient, a
+    `PolicyParams` pytree: the hand-derived derivatives through the controller's gradient."""
+    std = jnp.exp(theta.log_std)
+
+    def one(s, f):
+        c, dc = controller.value_and_grad(theta.controller, s)
+        q, dq_dc, dq_dlog = expected_q_and_grad(gp, kernel, f, c, std)
+        return q, jax.tree_util.tree_map(lambda g: dq_dc * g, dc), dq_dlog
+
+    q, g_c, g_log = jax.vmap(one)(states, factors)
+    w = weights / jnp.maximum(jnp.sum(weights), 1.0)
+    grad = theta._replace(
+        controller=jax.tree_util.tree_map(lambda g: jnp.tensordot(w, g, axes=1), g_c),
+        log_std=jnp.sum(w * g_log))
+    return jnp.sum(w * q), grad
+
+
+def mean_kl(controller, theta_p, theta_q, states, weights):
+    """The weighted mean over `states` of KL(pi_{theta_p} || pi_{theta_q}), Gaussian policies."""
+    mean_p = jax.vmap(lambda s: controller.apply(theta_p.controller, s))(states)
+    mean_q = jax.vmap(lambda s: controller.apply(theta_q.controller, s))(states)
+    kl = gaussian_kl(mean_p, jnp.exp(theta_p.log_std), mean_q, jnp.exp(theta_q.log_std))
+    return jnp.sum(weights * kl) / jnp.maximum(jnp.sum(weights), 1.0)
+
+
+def improve(controller, gp, kernel, theta_data, theta, states, factors, weights, *, num_steps: int,
+            learning_rate, trust_region, min_std, max_std):
+    """`num_steps` Adam steps on the surrogate from `theta`, then the largest fraction 2^-j of the
+    whole move (j = 0..LINE_SEARCH_HALVINGS) whose mean KL from `theta_data` is within
+    `trust_region` (none if no fraction is). sigma is clipped to [min_std, max_std].
+
+    Returns:
+      (theta, surrogate gain over `theta`, mean KL from theta_data, the fraction taken).
+    """
+    optimizer = optax.adam(learning_rate)
+    lo, hi = jnp.log(min_std), jnp.log(max_std)
+
+    def clip(t):
+        return t._replace(log_std=jnp.clip(t.log_std, lo, hi))
+
+    def step(carry, _):
+        t, opt_state = carry
+        _, grad = surrogate_and_grad(controller, gp, kernel, t, states, factors, weights)
+        grad = jax.tree_util.tree_map(lambda g: jnp.where(jnp.isfinite(g), g, 0.0), grad)
+        updates, opt_state = optimizer.update(jax.tree_util.tree_map(jnp.negative, grad),
+                                              opt_state, t)
+        return (clip(optax.apply_updates(t, updates)), opt_state), None
+
+    (moved, _), _ = jax.lax.scan(step, (theta, optimizer.init(theta)), None, length=num_steps)
+    fractions = 0.5 ** jnp.arange(LINE_SEARCH_HALVINGS + 1, dtype=theta.log_std.dtype)
+
+    def at(frac):
+        return clip(jax.tree_util.tree_map(lambda a, b: a + frac * (b - a), theta, moved))
+
+    kls = jax.vmap(lambda f: mean_kl(controller, theta_data, at(f), states, weights))(fractions)
+    ok = jnp.isfinite(kls) & (kls <= trust_region)
+    frac = jnp.where(jnp.any(ok), fractions[jnp.argmax(ok)], 0.0)
+    new = at(frac)
+    start, _ = surrogate_and_grad(controller, gp, kernel, theta, states, factors, weights)
+    end, _ = surrogate_and_grad(controller, gp, kernel, new, states, factors, weights)
+    return new, end - start, mean_kl(controller, theta_data, new, states, weights), frac
+
+
+def _decision_states(prog, eps):
+    """The update's decision states (every `hold` steps), their GP inputs without the action, and
+    their weights (0 after an episode's end): (N, obs), (N, D - 1), (N,)."""
+    states = eps.states[:, ::prog.hold]
+    obs_dim = states.shape[-1]
+    flat = states.reshape(-1, obs_dim)
+    x = jax.vmap(lambda s: prog.task.features(s, jnp.zeros((), s.dtype)))(flat)[:, :-1]
+    if eps.alive is None:
+        weights = jnp.ones(flat.shape[0], flat.dtype)
+    else:
+        weights = eps.alive[:, ::prog.hold].reshape(-1).astype(flat.dtype)
+    return flat, x, weights
+
+
+def critic_update(prog, cfg, state, batch):
+    """gp_pg's step (eq. 9), then `critic_steps` surrogate steps in the trust region."""
+    theta, opt_state, method_state, records = policy_gradient.q_gp_update(prog, cfg, state, batch)
+    zero = jnp.zeros((), prog.dtype)
+    if prog.config.critic_steps == 0:
+        return theta, opt_state, method_state, dict(
+            records, critic_gain=zero, critic_kl=zero, critic_step_fraction=zero)
+    states, x, weights = _decision_states(prog, batch.episodes)
+    factors = jax.vmap(lambda xs: state_factors(batch.gp, state.kernel, xs))(x)
+    new, gain, kl, frac = improve(
+        prog.controller, batch.gp, state.kernel, state.theta, theta, states, factors, weights,
+        num_steps=prog.config.critic_steps, learning_rate=cfg.critic_learning_rate,
+        trust_region=cfg.trust_region, min_std=cfg.min_std, max_std=cfg.max_std)
+    return new, opt_state, method_state, dict(
+        records, critic_gain=gain, critic_kl=kl, critic_step_fraction=frac.astype(prog.dtype))
+
+
+methods.register(methods.Method(
+    name="gp_critic", policy="fixed_noise", prior="q_gp", init=policy_gradient.no_state,
+    update=critic_update, records=RECORDS, explorations=("white", "ou", "coloured"),
+    compare_with=("reinforce", "gp_pg"), fit_fields=methods.Q_GP_FIT_FIELDS,
+    explain_exploration="'parameter' noise makes the action's distribution depend on the state "
+                        "through the weights, which the closed-form surrogate does not take"))
