@@ -138,7 +138,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="paper")
     ap.add_argument("--seeds", type=int, nargs="+", default=list(range(1000, 1010)))
-    ap.add_argument("--methods", nargs="+", default=list(config_lib.METHODS))
+    ap.add_argument("--methods", nargs="+", default=list(config_lib.PAPER_METHODS))
     ap.add_argument("--num-updates", type=int, default=None, help="override (quick runs)")
     ap.add_argument("--f64", default=None, help="a float64 reproduce output directory")
     ap.add_argument("--f32", default=None, help="a float32 reproduce output directory (same seeds)")

@@ -225,6 +225,11 @@ def bench_table() -> str:
     lines.append(f"| gp_pg: per-seed NumPy loop, extrapolated from {of_runs} "
                  f"{n['measured_updates']} updates | {n['extrapolated_run_s']:.1f} s |")
     lines.append(f"| **gp_pg: JAX over NumPy** | **{n['ratio_jax_over_numpy']:.1f}x** |")
+    for m, row in b.get("capacity", {}).get("capacities", {}).items():
+        c = b["capacity"]
+        lines.append(f"| one update at GP budget M = {m} ({c['preset']} preset, {c['seeds']} seeds; "
+                     + " / ".join(row) + ") | "
+                     + " / ".join(cell(r["per_update_s"], digits=3) for r in row.values()) + " |")
     g = b["gp"]
     lines.append(f"| sparse GP update alone (M = {g['capacity']}, {g['seeds']} seeds, as training runs "
                  "them): "

@@ -63,7 +63,7 @@ def measure(num_seeds: int, measured_updates: int | None = None, seed_loop: str 
     priors = jax.block_until_ready(compiled_fit(keys))
     out["hyperfit_run_s"] = time.perf_counter() - t0
     device_bytes = []
-    for method in config_lib.METHODS:
+    for method in config_lib.PAPER_METHODS:
         cfg = config_lib.preset("paper", method=method)
         train = train_lib.make_train(cfg)
         if cfg.uses_gp:

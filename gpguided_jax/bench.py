@@ -10,6 +10,9 @@ Sections (each a dict of figures; times in seconds, medians with min and max ove
   ``hyperfit_alternative``: the same with the other optimiser (Adam 100 steps / L-BFGS 15).
 * ``train``: per method, compile and run time of all `num_updates` updates for the seeds as one
   vmapped program, and seed-steps per second.
+* ``capacity``: the cost of one update at each GP budget M (100 and 400 on the paper preset), of
+  gp_pg (one ascent step) and gp_critic (its K surrogate steps besides), each a compiled chunk of
+  updates over the seeds, timed apart from compilation.
 * ``numpy_gp_pg``: the per-seed NumPy loop doing gp_pg's work (pendulum RK4, linear policy and its
   score, the reference GP, the gradient step) over a few updates, extrapolated to the whole run,
   and the ratio to the JAX gp_pg run.
@@ -264,7 +267,7 @@ def compiled_gp_methods_program(preset: str, methods, mesh, seed_loop: str, keys
 
 
 def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "paper",
-                methods=config_lib.METHODS) -> dict:
+                methods=config_lib.PAPER_METHODS) -> dict:
     """The hyperparameter fit and the whole run of each of `methods` in its own program, and the
     three GP methods' shared program, compiled as `gpguided reproduce` compiles them
     (`sharding.per_seed_program` over the seed mesh), timed apart from compilation."""
@@ -308,7 +311,7 @@ def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "pap
         out["methods"][method] = one(method)
 
     # The GP methods as `gpguided reproduce` runs them by default: one program, compiled once.
-    compiled, compile_s, runs = compiled_gp_methods_program(preset, train_lib.GP_METHODS, mesh,
+    compiled, compile_s, runs = compiled_gp_methods_program(preset, train_lib.program_family(cfg_gp), mesh,
                                                             out["seed_loop"], keys, priors)
     out["gp_methods_program"] = {
         "compile_s": compile_s,
@@ -336,8 +339,34 @@ def bench_train(repeats: int, seeds: int, numpy_updates: int, preset: str = "pap
     return out
 
 
+def bench_capacity(repeats: int, seeds: int, preset: str = "paper", capacities=(100, 400),
+                   methods=("gp_pg", "gp_critic"), updates: int = 10) -> dict:
+    """Seconds per update of each of `methods` at each GP budget M in `capacities`: a compiled
+    chunk of `updates` updates for the seeds (each from the state after the fit; the buffers are
+    of fixed size, so an update costs the same however full the GP is), its median run over
+    `repeats` divided by `updates`."""
+    mesh, keys = seed_mesh(seeds)
+    out: dict = {"preset": preset, "seeds": seeds, "updates": updates, "capacities": {}}
+    for m in capacities:
+        row = {}
+        for method in methods:
+            cfg = config_lib.preset(preset, method=method, gp_capacity=m, num_updates=updates)
+            train = train_lib.make_train(cfg)
+            state = jax.block_until_ready(
+                sharding.per_seed_program(lambda k, c=cfg, t=train: t.init(k, c), mesh)(keys))
+            run = sharding.per_seed_program(lambda s, c=cfg, t=train: t.run_chunk(s, c, updates),
+                                            mesh)
+            t0 = time.perf_counter()
+            compiled = run.lower(state).compile()
+            compile_s = time.perf_counter() - t0
+            t = _stats([x / updates for x in _timed(lambda f=compiled, s=state: f(s), repeats)])
+            row[method] = {"compile_s": compile_s, "per_update_s": t}
+        out["capacities"][str(m)] = row
+    return out
+
+
 def bench_paper_run(repeats: int, seeds: int, preset: str = "paper",
-                    methods: tuple[str, ...] = config_lib.METHODS) -> dict:
+                    methods: tuple[str, ...] = config_lib.PAPER_METHODS) -> dict:
     """`gpguided reproduce` as a user runs it, cold (empty compilation cache) and warm."""
     cold, warm = [], []
     for _ in range(repeats):
@@ -376,13 +405,18 @@ def run(*, repeats: int = 3, seeds: int = 10, numpy_updates: int = 50, quick: bo
     preset = "tiny" if quick else "paper"
     # quick: each method's own program for REINFORCE and gp_pg alone (the ratio's two sides)
     report["train"] = bench_train(repeats, 2 if quick else seeds, 1 if quick else numpy_updates,
-                                  preset, ("reinforce", "gp_pg") if quick else config_lib.METHODS)
+                                  preset, ("reinforce", "gp_pg") if quick else config_lib.PAPER_METHODS)
+    progress("bench: cost per update at each GP budget")
+    # quick: gp_critic at one small budget (the section's shape, not its figures)
+    report["capacity"] = bench_capacity(
+        repeats, 2 if quick else seeds, preset, (16,) if quick else (100, 400),
+        ("gp_critic",) if quick else ("gp_pg", "gp_critic"), 2 if quick else 10)
     if paper_run:
         progress("bench: the whole reproduce command, cold and warm")
         # quick (the tests): the command timed once, with REINFORCE alone, whose compile is the
         # shortest (with the four methods the cold and warm runs would take most of the time)
         report["paper_run"] = bench_paper_run(
             1 if quick else repeats, 2 if quick else seeds, preset,
-            ("reinforce",) if quick else config_lib.METHODS)
+            ("reinforce",) if quick else config_lib.PAPER_METHODS)
     report["load_average_after"] = list(os.getloadavg())
     return report

@@ -26,8 +26,8 @@ and its own records. Everything else a driver needs is declared:
 
 `train`, `reproduce`, `sweep`, the summaries and the studies read these declarations; none of them
 compares a method's name to a string. The paper's four methods are declared in
-`gpguided_jax.policy_gradient`; a new method is a module with its `Method` and a call of
-`register` (a test may register one too).
+`gpguided_jax.policy_gradient`, gp_critic in `gpguided_jax.critic`; a new method is a module with
+its `Method` and a call of `register` (a test may register one too).
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ class Method(NamedTuple):
 _REGISTRY: dict[str, Method] = {}
 # modules that declare methods, imported on the first look-up (they import `train`'s pieces,
 # which import the config, which looks methods up: importing them here would be a cycle)
-_BUILTIN_MODULES = ("gpguided_jax.policy_gradient",)
+_BUILTIN_MODULES = ("gpguided_jax.policy_gradient", "gpguided_jax.critic")
 _loaded = False
 
 

@@ -52,6 +52,9 @@ def test_gpguided_bench_quick_writes_the_report_the_readme_table_is_made_from(tm
     assert math.isclose(g["ratio"], g["jax_updates_per_s"] / g["numpy_updates_per_s"], rel_tol=1e-12)
     for s in report["env"].values():
         check_stats(s["run_s"])
+    cap = report["capacity"]["capacities"]
+    assert list(cap) == ["16"] and list(cap["16"]) == ["gp_critic"]
+    check_stats(cap["16"]["gp_critic"]["per_update_s"])
     assert report["paper_run"]["methods"] == ["reinforce"]  # quick: the cheapest whole command
     check_stats(report["paper_run"]["cold_s"], runs=1)  # the quick run times the command once
     check_stats(report["paper_run"]["warm_s"], runs=1)
@@ -66,3 +69,4 @@ def test_gpguided_bench_quick_writes_the_report_the_readme_table_is_made_from(tm
     assert "median [min, max] of 2 runs" in table
     assert f"{report['paper_run']['cold_s']['median']:.1f} s" in table
     assert f"compile {shared['compile_s']:.1f} s once for all three" in table
+    assert "one update at GP budget M = 16" in table

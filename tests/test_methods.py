@@ -21,7 +21,7 @@ PAPER = ("reinforce", "gp_pg", "guided_variance", "guided_direction")
 
 
 def test_the_paper_methods_are_declared_and_the_drivers_read_their_declarations():
-    assert C.METHODS[:4] == PAPER
+    assert C.METHODS[:4] == PAPER == C.PAPER_METHODS and "gp_critic" in C.METHODS
     assert T.GP_METHODS[:3] == PAPER[1:]
     assert [C.preset("tiny", method=m).uses_gp for m in PAPER] == [False, True, True, True]
     # the probability-of-improvement pairs, written out by hand
@@ -39,7 +39,7 @@ def test_the_paper_methods_are_declared_and_the_drivers_read_their_declarations(
 
 @pytest.mark.parametrize("kw, words", [
     (dict(method="guided_direction", exploration="ou"), "guided_direction takes 'white' only, got "
-     "'ou', which is for reinforce, gp_pg and guided_variance only"),
+     "'ou', which is for reinforce, gp_pg, guided_variance and gp_critic only"),
     (dict(method="guided_variance", exploration="parameter"), "for reinforce and gp_pg only"),
     (dict(method="no_such_method"), "unknown method 'no_such_method'"),
 ])
