@@ -378,10 +378,13 @@ def _add_reproduce(sub) -> None:
                      help="on a task whose episodes end early: mask the slots after the end "
                      "(default) or restart the environment in them, so that every slot is an "
                      "environment step")
+    from gpguided_jax.config import FIELD_GROUPS
+
     rep.add_argument("--set", nargs="+", default=None, metavar="FIELD=VALUE",
                      help="any other TrainConfig field (or discount_horizon, in seconds) for "
                           "every method, e.g. --set num_updates=100 learning_rate=0.01; applied "
-                          "after the preset and the method's tuned settings")
+                          "after the preset and the method's tuned settings. The fields: "
+                          + "; ".join(f"{g}: {', '.join(fs)}" for g, fs in FIELD_GROUPS.items()))
     rep.add_argument("--seeds", type=positive_int, default=10, help="number of seeds")
     rep.add_argument("--seed-start", type=non_negative_int, default=REPORTED_SEED_START,
                      help="first seed (the reported results use seeds from 1000 on; the presets "

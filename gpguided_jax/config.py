@@ -236,6 +236,33 @@ class TrainConfig:
         return out
 
 
+# The fields by concern (each field in exactly one group; the names stay flat, as presets, tuning
+# records and `--set` give them). A method's own settings form a group of their own (critic).
+FIELD_GROUPS: dict[str, tuple[str, ...]] = {
+    "run": ("method", "num_updates", "episodes_per_update", "dtype", "eval_episodes"),
+    "task": ("env", "pendulum", "episode_length", "episode_end", "success_hold_time",
+             "success_tolerance"),
+    "gp": ("gp_capacity", "gp_stride", "novelty_tol", "age_fn", "age_penalty", "age_scale",
+           "hyperfit_samples", "hyperfit_steps", "hyperfit_optimizer", "hyperfit_subset"),
+    "policy": ("controller", "init_log_std", "min_std", "max_std", "guided_variance_scale",
+               "guided_variance_floor", "num_candidates", "inverse_temperature", "energy_width",
+               "candidate_scale", "candidate_floor", "optimism"),
+    "exploration": ("exploration", "noise_correlation_time", "noise_exponent",
+                    "noise_resample_time", "hold_time"),
+    "estimator": ("discount", "use_baseline"),
+    "optimiser": ("optimizer", "learning_rate", "max_grad_norm"),
+    "critic": ("critic_steps", "critic_learning_rate", "trust_region"),
+}
+
+
+def group_of(field: str) -> str:
+    """The `FIELD_GROUPS` group of a `TrainConfig` field (`KeyError` for no field)."""
+    for group, fields in FIELD_GROUPS.items():
+        if field in fields:
+            return group
+    raise KeyError(field)
+
+
 TRACED_FIELDS = tuple(
     f.name for f in dataclasses.fields(TrainConfig) if f.name not in STATIC_FIELDS
 )

@@ -241,3 +241,10 @@ def test_the_env_steps_axis_counts_the_fit_and_the_updates_before_each_record():
     np.testing.assert_array_equal(summaries.env_steps_axis(exploring, 3), [3000, 4000, 5000])
     reach = summaries.steps_to_threshold(np.array([[-300.0, -150.0, -100.0]]), budget)
     np.testing.assert_array_equal(reach, [3000])
+
+
+def test_every_config_field_is_in_exactly_one_group():
+    grouped = [f for fields in C.FIELD_GROUPS.values() for f in fields]
+    assert sorted(grouped) == sorted(f.name for f in dataclasses.fields(C.TrainConfig))
+    assert len(grouped) == len(set(grouped))
+    assert C.group_of("trust_region") == "critic" and C.group_of("gp_capacity") == "gp"
