@@ -62,7 +62,7 @@ def test_the_expected_q_against_quadrature_and_monte_carlo(dtype, std, action_sc
     reference = integrate.trapezoid(density * _numpy_mean(gp, kernel, xs), u)
     np.testing.assert_allclose(got, reference, **TOL[dtype])
     # Monte Carlo over actions, within five standard errors
-    draws = mean + std * np.random.default_rng(1).normal(size=200_000)
+    draws = mean + std * np.random.default_rng(1).normal(size=40_000)
     values = _numpy_mean(gp, kernel, np.column_stack([np.tile(x_state, (draws.size, 1)), draws]))
     assert abs(got - values.mean()) < 5 * values.std() / np.sqrt(draws.size) + 1e-5
 
