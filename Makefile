@@ -55,10 +55,11 @@ figures: $(STAMP)
 	$(PY) experiments/gradient_check.py --out docs/results/gradient_check.json
 	$(PY) experiments/docs_tables.py --write
 
-# The swing-up study: tuning on seeds 100-101, then seeds 1000-1009 against PPO and SAC.
-# It starts afresh, as `results` does (a held-out checkpoint would be resumed, and its wall time lost).
+# The swing-up study (the protocol of gpguided_jax/study.py): tuning on seeds 100-101, then seeds
+# 1000-1009 against PPO and SAC, each method's run in methods/<method>/. It starts afresh, as
+# `results` does (a held-out checkpoint would be resumed, and its wall time lost).
 swingup: $(STAMP)
-	rm -f docs/results/swingup/methods/checkpoint_* docs/results/swingup/methods/kernels*.npz
+	rm -f docs/results/swingup/methods/*/checkpoint_* docs/results/swingup/methods/*/kernels*.npz
 	$(PY) experiments/swingup_study.py tune
 	$(PY) experiments/swingup_study.py heldout
 	$(PY) experiments/swingup_study.py gpfig
@@ -67,7 +68,8 @@ swingup: $(STAMP)
 	$(PY) experiments/docs_tables.py --write
 
 # The standard tasks (docs/standard_tasks.md): tuning on seeds 100-101, then seeds 1000-1009,
-# for each task with a comparison on the page.
+# for each task with a comparison on the page. The held-out stage resumes: a method or baseline
+# whose heldout/<name>.json holds the same seeds and settings is not run again.
 STANDARD_TASKS ?= pendulum-v1 mountaincar-continuous
 standard: $(STAMP)
 	for t in $(STANDARD_TASKS); do \
@@ -79,7 +81,8 @@ standard: $(STAMP)
 
 # The exploration study on the swing-up preset: reach, tuning on seeds 100-101, then seeds
 # 1000-1019 with every scheme per method; then MountainCarContinuous-v0 and Pendulum-v1 with
-# every scheme per method (it resumes: remove docs/results/exploration to start afresh).
+# every scheme per method (it resumes: a run recorded with the same settings is not run again;
+# remove docs/results/exploration to start afresh).
 exploration: $(STAMP)
 	$(PY) experiments/exploration_study.py reach
 	$(PY) experiments/exploration_study.py tune

@@ -1,7 +1,9 @@
 """Exploration that can find a swing-up: the four methods on the swing-up preset with temporally
-correlated noise and held actions (design: docs/design.md#exploration).
+correlated noise and held actions (design: docs/design.md#exploration), by the protocol of
+`gpguided_jax.study`.
 
-The grid below was written down before any of its runs.
+The grid below was written down before any of its runs. Each method's settings apply over the
+preset's tuned ones (`config.METHOD_PRESETS['swingup']`, this study's choice).
 
 Stages (each writes under --out, default docs/results/exploration):
 
@@ -16,16 +18,19 @@ Stages (each writes under --out, default docs/results/exploration):
             rate, ties broken by the final reward per step. Writes tuning.json.
 ``heldout`` Held-out seeds 1000-1019: each method with its chosen settings, and the ablation: the
             same method and settings under every scheme it can take (`ABLATION`). One
-            `gpguided_jax.reproduce` run per (method, scheme) under heldout/. Writes heldout.json.
-``report``  heldout.md (steps to 50% and 90% success, final success and reward per cell; the
-            guidance against the same correlated noise unguided), the figure, and the action
-            length-scale fitted under each scheme.
+            `gpguided_jax.reproduce` run per (method, scheme) under heldout/. Writes heldout.json
+            (each run's settings and wall time; it resumes: a run recorded with the same settings
+            is not run again).
+``report``  heldout_table.json (steps to 50% and 90% success on `study.env_steps`, final success
+            and reward per cell; the guidance against the same correlated noise unguided), the
+            figure, and the action length-scale fitted under each scheme.
 
 ``baselines-tune``  brax PPO and SAC re-tuned for this study on the tuning seeds, with the methods'
             budget (`CONFIGS_PER_METHOD` configurations x 2 seeds, full runs): horizon,
             exploration and learning parameters (`BASELINE_GRID`). Writes baseline_tuning.json.
 ``baselines``  Both with their chosen settings on the held-out seeds, into heldout/<name>.npz;
-            `report` sets them beside the methods. Writes baselines.json.
+            `report` sets them beside the methods. Writes baselines.json (it resumes, as
+            ``heldout``).
 
 Usage:
   python experiments/exploration_study.py reach
@@ -58,13 +63,13 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import swingup_study as S  # noqa: E402
 
 import gpguided_jax  # noqa: E402
-from gpguided_jax import checkpoints, reproduce, runtime, sweep, tasks  # noqa: E402
+from gpguided_jax import checkpoints, runtime, study, tasks  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
 from gpguided_jax import stats as stats_lib  # noqa: E402
 from gpguided_jax import train as train_lib  # noqa: E402
 
-METHODS = config_lib.METHODS
-TUNING_SEEDS = (100, 101)
+METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction")  # `GRID`
+TUNING_SEEDS = study.TUNING_SEEDS
 HELDOUT_SEEDS = tuple(range(1000, 1020))
 REACH_SEEDS = tuple(range(1000, 1010))
 REACH_EPISODES = 20
@@ -193,8 +198,7 @@ STANDARD_SCHEMES = {
 }
 
 
-def log(msg: str) -> None:
-    print(f"[{time.strftime('%X')}] {msg}", file=sys.stderr, flush=True)
+log = study.log
 
 
 def preset(method: str, **overrides) -> config_lib.TrainConfig:
@@ -208,11 +212,8 @@ def reach(out: str) -> dict:
     """Share of the initial policy's episodes above horizontal / near upright, per method, scheme
     and amplitude. The rows of an earlier reach.json are kept, and only the missing ones run."""
     path = os.path.join(out, "reach.json")
-    done = {}
-    if os.path.exists(path):
-        with open(path) as f:
-            done = {(r["method"], r["scheme"], r[AMPLITUDE[r["method"]][0]]): r
-                    for r in json.load(f)["rows"]}
+    done = {(r["method"], r["scheme"], r[AMPLITUDE[r["method"]][0]]): r
+            for r in study.read_json(path, {"rows": []})["rows"]}
     rows = []
     for method in METHODS:
         field, amplitudes = AMPLITUDE[method]
@@ -232,7 +233,7 @@ def reach(out: str) -> dict:
                 log(f"[reach] {method} {name} {field}={amp:.3g}: above {above:.2f}, "
                     f"upright {upright:.2f}")
     res = {"seeds": list(REACH_SEEDS), "episodes_per_seed": REACH_EPISODES, "rows": rows}
-    checkpoints.atomic_write_text(path, json.dumps(res, indent=2))
+    study.write_json(path, res)
     return res
 
 
@@ -257,33 +258,30 @@ def _reach_one(cfg) -> tuple[float, float]:
 
 
 def tune(out: str, only=None) -> dict:
-    path = os.path.join(out, "tuning.json")
-    rep = {"seeds": list(TUNING_SEEDS), "dtype": DTYPE, "methods": {}}
-    if os.path.exists(path):
-        with open(path) as f:
-            rep = json.load(f)
-    rep["env_steps"] = S.budget(preset("reinforce"))
+    """The grid (`GRID`: scheme x horizon x learning rate) of each method on the tuning seeds: a
+    coordinate search whose every stage sets every parameter (one stage per scheme and horizon,
+    its learning rates one sweep). Writes tuning.json."""
+    header = {"seeds": list(TUNING_SEEDS), "dtype": DTYPE,
+              "env_steps": study.learning_steps(preset("reinforce"))}
+    rep = None
     for method in only or METHODS:
         field, amplitudes = AMPLITUDE[method]
-        rates = list(LEARNING_RATES)
-        tried, t0 = [], time.perf_counter()
-        for scheme in GRID[method]:
-            for horizon in HORIZONS:
-                fixed = {**FIXED, field: amplitudes[-1], "discount_horizon": horizon}
-                res = sweep.run_sweep("learning_rate", rates, method=method, preset="swingup",
-                                      seeds=TUNING_SEEDS, progress=lambda m: None,
-                                      overrides={**SCHEMES[scheme], **fixed, "dtype": DTYPE})
-                for i, lr in enumerate(rates):
-                    rec = {k: res.records[k][i] for k in ("eval_success_rate", "eval_reward")}
-                    succ, rew = S.score_method(rec)
-                    tried.append(dict(settings={"scheme": scheme, **fixed, "learning_rate": lr},
-                                      success=succ, reward=rew))
-                    log(f"[tune {method}] {scheme}, horizon {horizon:g} s, lr {lr:.3g}: "
-                        f"success {succ:.2f}, reward {rew:.3f} ({time.perf_counter() - t0:.0f}s)")
-        assert len(tried) == CONFIGS_PER_METHOD
-        rep["methods"][method] = dict(tried=tried, chosen=S._best(tried)["settings"],
-                                      wall_s=time.perf_counter() - t0)
-        checkpoints.atomic_write_text(path, json.dumps(rep, indent=2))
+        grid = [[{"scheme": scheme, **FIXED, field: amplitudes[-1], "discount_horizon": horizon,
+                  "learning_rate": lr} for lr in LEARNING_RATES]
+                for scheme in GRID[method] for horizon in HORIZONS]
+
+        def evaluate(configs, method=method):
+            overrides = [{**SCHEMES[c["scheme"]], **{k: v for k, v in c.items() if k != "scheme"},
+                          "dtype": DTYPE} for c in configs]
+            return study.sweep_stage(overrides, study.final_success, method=method,
+                                     preset="swingup", seeds=TUNING_SEEDS)
+
+        t0 = time.perf_counter()
+        result = study.coordinate_search(grid, evaluate, key=study.by_success,
+                                         log=lambda m, method=method: log(f"[tune {method}] {m}"))
+        assert len(result["tried"]) == CONFIGS_PER_METHOD
+        rep = study.record_result(os.path.join(out, "tuning.json"), header, method,
+                                  {**result, "wall_s": time.perf_counter() - t0})
     return rep
 
 
@@ -296,29 +294,22 @@ def settings_of(chosen: dict, scheme: str) -> dict:
     return {**s, **SCHEMES[scheme]}
 
 
-def heldout(out: str, only=None) -> None:
-    with open(os.path.join(out, "tuning.json")) as f:
-        tuning = json.load(f)
-    path = os.path.join(out, "heldout.json")
-    meta = {"seeds": list(HELDOUT_SEEDS), "runs": {}}
-    if os.path.exists(path):
-        with open(path) as f:
-            meta = json.load(f)
-    for method in only or METHODS:
-        chosen = tuning["methods"][method]["chosen"]
-        for scheme in ABLATION[method]:
-            key = f"{method}/{scheme}"
-            overrides = settings_of(chosen, scheme)
-            if meta["runs"].get(key, {}).get("overrides") == overrides:
-                continue  # done with these settings
-            run_dir = os.path.join(out, "heldout", method, scheme)
-            t0 = time.perf_counter()
-            reproduce.reproduce("swingup", HELDOUT_SEEDS, [method], run_dir, dtype=DTYPE,
-                                chunk_size=20, overrides=overrides, progress=log,
-                                gp_program="per_method")
-            meta["runs"][key] = dict(overrides=overrides, wall_s=time.perf_counter() - t0)
-            checkpoints.atomic_write_text(path, json.dumps(meta, indent=2))
-            log(f"[heldout] {key}: {meta['runs'][key]['wall_s']:.0f}s")
+def heldout(out: str, only=None) -> dict:
+    """Each method of `only` under each scheme of its ablation, with its chosen settings, on the
+    held-out seeds: one run each under heldout/<method>/<scheme>/, recorded in heldout.json (a run
+    whose settings are recorded there is not run again)."""
+    tuning = study.read_json(os.path.join(out, "tuning.json"))
+    parts = {f"{m}/{scheme}": settings_of(tuning["methods"][m]["chosen"], scheme)
+             for m in only or METHODS for scheme in ABLATION[m]}
+
+    def run(key, overrides):
+        run = study.run_method("swingup", key.split("/")[0], HELDOUT_SEEDS,
+                               os.path.join(out, "heldout", key), overrides, dtype=DTYPE,
+                               chunk_size=20)
+        return {"wall_s": run.wall_s}
+
+    return study.run_parts(os.path.join(out, "heldout.json"), {"seeds": list(HELDOUT_SEEDS)},
+                           parts, run, log=lambda m: log(f"[heldout] {m}"))
 
 
 # -------------------------------------------------------------------------------------- baselines
@@ -333,81 +324,72 @@ def baseline_kwargs(settings: dict) -> dict:
     return kw
 
 
-def _stages(name: str):
-    """(settings of each configuration) per coordinate-search stage of `BASELINE_GRID`."""
-    for params, values in BASELINE_GRID[name]:
-        if isinstance(params, tuple):
-            yield [dict(zip(params, v)) for v in values]
-        else:
-            yield [{params: v} for v in values]
-
-
 def baselines_tune(out: str, only=None) -> dict:
-    path = os.path.join(out, "baseline_tuning.json")
-    rep = {"seeds": list(TUNING_SEEDS), "env_steps": S.budget(preset("reinforce")), "methods": {}}
-    if os.path.exists(path):
-        with open(path) as f:
-            rep = json.load(f)
-    cfg = preset("reinforce")
+    """Coordinate search of each baseline (`BASELINE_GRID`) from `BASELINE_START` on the tuning
+    seeds. Writes baseline_tuning.json."""
+    header = {"seeds": list(TUNING_SEEDS), "env_steps": study.learning_steps(preset("reinforce"))}
+    rep = None
     for name in only or BASELINES:
-        chosen, tried, t0 = dict(BASELINE_START[name]), [], time.perf_counter()
-        for stage in _stages(name):
-            for change in stage:
-                settings = {**chosen, **change}
-                results = [S.run_baseline(name, cfg, s, baseline_kwargs(settings))
-                           for s in TUNING_SEEDS]
-                succ, rew = S.score_baseline(results)
-                tried.append(dict(settings=settings, success=succ, reward=rew,
-                                  wall_s=float(sum(r.wall_time for r in results))))
-                log(f"[tune {name}] {settings}: success {succ:.2f}, reward {rew:.3f} "
-                    f"({time.perf_counter() - t0:.0f}s)")
-            chosen = dict(S._best(tried)["settings"])
-        assert len(tried) == CONFIGS_PER_METHOD
-        rep["methods"][name] = dict(tried=tried, chosen=chosen, wall_s=time.perf_counter() - t0)
-        checkpoints.atomic_write_text(path, json.dumps(rep, indent=2))
+        t0 = time.perf_counter()
+        evaluate = S.evaluate_baseline(name, preset("reinforce"), TUNING_SEEDS, baseline_kwargs)
+        result = study.coordinate_search(study.stages(BASELINE_GRID[name]), evaluate,
+                                         key=study.by_success, start=BASELINE_START[name],
+                                         log=lambda m, name=name: log(f"[tune {name}] {m}"))
+        assert len(result["tried"]) == CONFIGS_PER_METHOD
+        rep = study.record_result(os.path.join(out, "baseline_tuning.json"), header, name,
+                                  {**result, "wall_s": time.perf_counter() - t0})
     return rep
 
 
 def baselines_heldout(out: str, only=None) -> dict:
-    with open(os.path.join(out, "baseline_tuning.json")) as f:
-        tuning = json.load(f)
-    path = os.path.join(out, "baselines.json")
-    meta = {"seeds": list(HELDOUT_SEEDS), "runs": {}}
-    if os.path.exists(path):
-        with open(path) as f:
-            meta = json.load(f)
+    """Each baseline of `only` with its chosen settings on the held-out seeds, into
+    heldout/<name>.npz; recorded in baselines.json (a baseline whose settings are recorded there
+    is not run again)."""
+    tuning = study.read_json(os.path.join(out, "baseline_tuning.json"))
     cfg = preset("reinforce")
-    os.makedirs(os.path.join(out, "heldout"), exist_ok=True)
-    for name in only or BASELINES:
-        settings = tuning["methods"][name]["chosen"]
+
+    def run(name, settings):
         rs = []
         for s in HELDOUT_SEEDS:
             r = S.run_baseline(name, cfg, s, baseline_kwargs(settings))
             log(f"[heldout {name}] seed {s}: {r.wall_time:.0f}s, success {r.success_rate[-1]:.2f}, "
                 f"reward {r.reward_per_step[-1]:.3f}")
             rs.append(r)
+        os.makedirs(os.path.join(out, "heldout"), exist_ok=True)
         checkpoints.atomic_savez(os.path.join(out, "heldout", f"{name}.npz"),
                                  steps=rs[0].env_steps,
                                  success=np.stack([r.success_rate for r in rs]),
                                  reward=np.stack([r.reward_per_step for r in rs]))
-        meta["runs"][name] = dict(settings=settings,
-                                  wall_s=float(sum(r.wall_time for r in rs)))
-        checkpoints.atomic_write_text(path, json.dumps(meta, indent=2))
-    return meta
+        return {"wall_s": float(sum(r.wall_time for r in rs))}
+
+    parts = {name: tuning["methods"][name]["chosen"] for name in only or BASELINES}
+    return study.run_parts(os.path.join(out, "baselines.json"), {"seeds": list(HELDOUT_SEEDS)},
+                           parts, run, settings_key="settings",
+                           log=lambda m: log(f"[heldout] {m}"))
 
 
 # ----------------------------------------------------------------------------------------- report
 
 
-def _curves(out: str, method: str, scheme: str):
-    run_dir = os.path.join(out, "heldout", method, scheme)
-    with np.load(os.path.join(run_dir, "results.npz")) as f:
+def _curves(out: str, method: str, scheme: str, overrides: dict):
+    """A run's deterministic success and reward per step, on `study.env_steps`."""
+    with np.load(os.path.join(out, "heldout", method, scheme, "results.npz")) as f:
         success = np.asarray(f["eval_success_rate"][0], float)
         reward = np.asarray(f["eval_reward"][0], float)
-    with open(os.path.join(out, "heldout.json")) as f:
-        overrides = json.load(f)["runs"][f"{method}/{scheme}"]["overrides"]
-    steps = S.method_env_steps(preset(method, **{**SCHEME_BASE, **overrides}))
+    steps = study.env_steps(preset(method, **{**SCHEME_BASE, **overrides}))
     return steps, success, reward
+
+
+def steps_to_row(steps: np.ndarray, success: np.ndarray) -> dict:
+    """steps_to_50, steps_to_90: the seeds that reach the level, the median over all seeds of the
+    environment steps to it and its 95% interval."""
+    row = {}
+    for level in (0.5, 0.9):
+        hit = study.steps_to(steps, success, level, tol=1e-9)
+        med, lo, hi = study.median_ci(hit)
+        row[f"steps_to_{int(level * 100)}"] = dict(seeds=int(np.isfinite(hit).sum()), median=med,
+                                                   ci=[lo, hi])
+    return row
 
 
 def action_length_scale(out: str, method: str, scheme: str) -> float | None:
@@ -420,19 +402,15 @@ def action_length_scale(out: str, method: str, scheme: str) -> float | None:
 
 
 def report(out: str) -> str:
-    with open(os.path.join(out, "heldout.json")) as f:
-        meta = json.load(f)
-    with open(os.path.join(out, "tuning.json")) as f:
-        chosen = {m: r["chosen"]["scheme"] for m, r in json.load(f)["methods"].items()}
+    meta = study.read_json(os.path.join(out, "heldout.json"))
+    chosen = {m: r["chosen"]["scheme"]
+              for m, r in study.read_json(os.path.join(out, "tuning.json"))["methods"].items()}
     table = {"seeds": meta["seeds"], "rows": [], "guidance": []}
     # the run directories' curves (results.npz) are not kept in the repository: a run whose
     # curves are not on this machine keeps its row of the table file, and the figure is drawn
     # only when every run's curves are here
     table_path = os.path.join(out, "heldout_table.json")
-    previous = {"rows": [], "guidance": []}
-    if os.path.exists(table_path):
-        with open(table_path) as f:
-            previous = json.load(f)
+    previous = study.read_json(table_path, {"rows": [], "guidance": []})
     kept = {f"{r['method']}/{r['scheme']}": r for r in previous["rows"]}
     have = {key: os.path.exists(os.path.join(out, "heldout", *key.split("/"), "results.npz"))
             for key in meta["runs"]}
@@ -446,49 +424,34 @@ def report(out: str) -> str:
         if not have[key]:
             table["rows"].append(kept[key])
             continue
-        steps, success, reward = _curves(out, method, scheme)
-        smooth = S.smoothed(success, method)
+        steps, success, reward = _curves(out, method, scheme, run["overrides"])
+        smooth = study.smoothed(success, S.SMOOTH)
         is_chosen = scheme == chosen[method]
-        row = dict(method=method, scheme=scheme, chosen=is_chosen, settings=run["overrides"],
-                   final_success=float(S.summaries.final_performance(success).mean()),
-                   final_reward=float(S.summaries.final_performance(reward).mean()),
-                   action_length_scale=action_length_scale(out, method, scheme),
-                   wall_s=run["wall_s"])
-        for level in (0.5, 0.9):
-            hit = S.steps_to(steps, smooth, level)
-            med, lo, hi = S.median_ci(hit)
-            row[f"steps_to_{int(level * 100)}"] = dict(
-                seeds=int(np.isfinite(hit).sum()), median=med, ci=[lo, hi])
-        table["rows"].append(row)
-        finals[key] = S.summaries.final_performance(reward)
+        table["rows"].append(dict(
+            method=method, scheme=scheme, chosen=is_chosen, settings=run["overrides"],
+            final_success=float(study.final(success).mean()),
+            final_reward=float(study.final(reward).mean()),
+            action_length_scale=action_length_scale(out, method, scheme), wall_s=run["wall_s"],
+            **steps_to_row(steps, smooth)))
+        finals[key] = study.final(reward)
         if is_chosen:
             for ax, y in zip(axes, (smooth, reward)):
-                m, h = stats_lib.t_interval(y)
-                ax.plot(steps, m, label=f"{method} ({scheme})")
-                ax.fill_between(steps, m - h, m + h, alpha=0.2)
-    bpath = os.path.join(out, "baselines.json")
-    if os.path.exists(bpath):  # brax PPO and SAC, re-tuned for this study (`baselines`)
-        with open(bpath) as f:
-            bmeta = json.load(f)
+                study.plot_band(ax, steps, y, label=f"{method} ({scheme})")
+    bmeta = study.read_json(os.path.join(out, "baselines.json"))
+    if bmeta is not None:  # brax PPO and SAC, re-tuned for this study (`baselines`)
         assert bmeta["seeds"] == meta["seeds"], "the baselines ran on other seeds"
         for name, run in bmeta["runs"].items():
             with np.load(os.path.join(out, "heldout", f"{name}.npz")) as f:
                 steps, success, reward = (np.asarray(f[k], float)
                                           for k in ("steps", "success", "reward"))
-            row = dict(method=name, scheme="its own", chosen=True, settings=run["settings"],
-                       final_success=float(S.summaries.final_performance(success).mean()),
-                       final_reward=float(S.summaries.final_performance(reward).mean()),
-                       action_length_scale=None, wall_s=run["wall_s"])
-            for level in (0.5, 0.9):  # each evaluation is 64 episodes: no trailing mean
-                hit = S.steps_to(steps, success, level)
-                med, lo, hi = S.median_ci(hit)
-                row[f"steps_to_{int(level * 100)}"] = dict(
-                    seeds=int(np.isfinite(hit).sum()), median=med, ci=[lo, hi])
-            table["rows"].append(row)
+            # each evaluation is 64 episodes: no trailing mean
+            table["rows"].append(dict(
+                method=name, scheme="its own", chosen=True, settings=run["settings"],
+                final_success=float(study.final(success).mean()),
+                final_reward=float(study.final(reward).mean()), action_length_scale=None,
+                wall_s=run["wall_s"], **steps_to_row(steps, success)))
             for ax, y in zip(axes, (success, reward)):
-                m, h = stats_lib.t_interval(y)
-                ax.plot(steps, m, ls="--", label=f"{name} (brax, re-tuned)")
-                ax.fill_between(steps, m - h, m + h, alpha=0.15)
+                study.plot_band(ax, steps, y, alpha=0.15, ls="--", label=f"{name} (brax, re-tuned)")
     if not draw:
         table["guidance"] = previous["guidance"]
     for scheme in ("ou_0.5s", "coloured_2", "hold_0.5s") if draw else ():
@@ -511,8 +474,7 @@ def report(out: str) -> str:
     else:
         log("the curves of some runs are not here: their rows kept, the figure not redrawn")
     plt.close(fig)
-    checkpoints.atomic_write_text(os.path.join(out, "heldout_table.json"),
-                                  json.dumps(table, indent=2))
+    study.write_json(os.path.join(out, "heldout_table.json"), table)
     return json.dumps(table["rows"], indent=1)
 
 
@@ -536,66 +498,55 @@ def _schemes_of(method: str, schemes: dict) -> list[str]:
 def standard_tune(task: str, out: str, only=None) -> dict:
     """The scheme each method would choose on the tuning seeds: each scheme of
     `STANDARD_SCHEMES[task]` it can take at its tuned settings, on `TUNING_SEEDS`; score: the mean
-    final return of the deterministic policy. Writes <out>/<task>/standard_tuning.json."""
+    final return of the deterministic policy. Writes <out>/<task>/standard_tuning.json (a scheme
+    tried there is not run again)."""
     base = os.path.join(out, task)
     path = os.path.join(base, "standard_tuning.json")
-    rec = {"task": task, "seeds": list(TUNING_SEEDS), "methods": {}}
-    if os.path.exists(path):
-        with open(path) as f:
-            rec = json.load(f)
+    rec = study.read_json(path, {"task": task, "seeds": list(TUNING_SEEDS), "methods": {}})
     for method in only or METHODS:
         tried = rec["methods"].get(method, {}).get("tried", [])
         done = {t["scheme"] for t in tried}
         for name in _schemes_of(method, STANDARD_SCHEMES[task]):
             if name in done:
                 continue
-            overrides = {**SCHEME_BASE, **STANDARD_SCHEMES[task][name]}
-            run_dir = os.path.join(base, "tuning", method, name)
-            reproduce.reproduce(task, TUNING_SEEDS, [method], run_dir, dtype=STANDARD_DTYPE,
-                                overrides=overrides, progress=log, gp_program="per_method")
-            with np.load(os.path.join(run_dir, "results.npz")) as f:
-                final = S.summaries.final_performance(np.asarray(f["eval_return"][0], float))
-            tried.append(dict(scheme=name, score=float(final.mean())))
-            log(f"[standard-tune {task}] {method}/{name}: {float(final.mean()):.1f}")
-        rec["methods"][method] = dict(tried=tried,
-                                      chosen=max(tried, key=lambda t: t["score"])["scheme"])
-        checkpoints.atomic_write_text(path, json.dumps(rec, indent=2))
+            run = study.run_method(task, method, TUNING_SEEDS,
+                                   os.path.join(base, "tuning", method, name),
+                                   {**SCHEME_BASE, **STANDARD_SCHEMES[task][name]},
+                                   dtype=STANDARD_DTYPE)
+            tried.append(dict(scheme=name, **study.final_return(run.records)))
+            log(f"[standard-tune {task}] {method}/{name}: {tried[-1]['score']:.1f}")
+        rec["methods"][method] = dict(tried=tried, chosen=max(tried, key=study.by_score)["scheme"])
+        study.write_json(path, rec)
     return rec
 
 
 def standard(task: str, out: str, only=None) -> dict:
     """Each method at its tuned settings for `task` under each of `STANDARD_SCHEMES[task]`, one
     `gpguided_jax.reproduce` run per (method, scheme) under <out>/<task>/; writes
-    <out>/<task>/standard.json with each run's summary row."""
+    <out>/<task>/standard.json with each run's summary row (a run recorded there with the same
+    settings is not run again)."""
     base = os.path.join(out, task)
     path = os.path.join(base, "standard.json")
-    meta = {"task": task, "seeds": list(STANDARD_SEEDS), "runs": {}}
-    if os.path.exists(path):
-        with open(path) as f:
-            meta = json.load(f)
-    for method in only or METHODS:
-        for name in _schemes_of(method, STANDARD_SCHEMES[task]):
-            key = f"{method}/{name}"
-            overrides = {**SCHEME_BASE, **STANDARD_SCHEMES[task][name]}
-            if meta["runs"].get(key, {}).get("overrides") == overrides:
-                continue
-            run_dir = os.path.join(base, method, name)
-            t0 = time.perf_counter()
-            reproduce.reproduce(task, STANDARD_SEEDS, [method], run_dir, dtype=STANDARD_DTYPE,
-                                overrides=overrides, progress=log, gp_program="per_method")
-            with open(os.path.join(run_dir, "summary.csv")) as f:
-                row = next(csv.DictReader(f))
-            meta["runs"][key] = dict(overrides=overrides, wall_s=time.perf_counter() - t0,
-                                     summary=row)
-            checkpoints.atomic_write_text(path, json.dumps(meta, indent=2))
-            log(f"[standard {task}] {key}: return {float(row['final_return_iqm']):.1f}, "
-                f"{row['seeds_reaching_threshold']} seeds reach the threshold "
-                f"({meta['runs'][key]['wall_s']:.0f}s)")
+
+    def run(key, overrides):
+        method, run_dir = key.split("/")[0], os.path.join(base, key)
+        wall = study.run_method(task, method, STANDARD_SEEDS, run_dir, overrides,
+                                dtype=STANDARD_DTYPE).wall_s
+        with open(os.path.join(run_dir, "summary.csv")) as f:
+            row = next(csv.DictReader(f))
+        log(f"[standard {task}] {key}: return {float(row['final_return_iqm']):.1f}, "
+            f"{row['seeds_reaching_threshold']} seeds reach the threshold")
+        return {"wall_s": wall, "summary": row}
+
+    parts = {f"{m}/{name}": {**SCHEME_BASE, **STANDARD_SCHEMES[task][name]}
+             for m in only or METHODS for name in _schemes_of(m, STANDARD_SCHEMES[task])}
+    meta = study.run_parts(path, {"task": task, "seeds": list(STANDARD_SEEDS)}, parts, run,
+                           log=lambda m: log(f"[standard {task}] {m}"))
     # the guidance against the same unguided noise: P(guided_variance > gp_pg), final return
     finals = {}
     for key in meta["runs"]:
         with np.load(os.path.join(base, key, "results.npz")) as f:
-            finals[key] = S.summaries.final_performance(np.asarray(f["eval_return"][0], float))
+            finals[key] = study.final(f["eval_return"][0])
     meta["guidance"] = []
     for name in STANDARD_SCHEMES[task]:
         a, b = f"guided_variance/{name}", f"gp_pg/{name}"
@@ -604,7 +555,7 @@ def standard(task: str, out: str, only=None) -> dict:
             meta["guidance"].append(dict(
                 scheme=name, p=stats_lib.probability_of_improvement(finals[a], finals[b]),
                 ci=[lo, hi]))
-    checkpoints.atomic_write_text(path, json.dumps(meta, indent=2))
+    study.write_json(path, meta)
     return meta
 
 

@@ -1,5 +1,6 @@
 """The four methods beside brax's SAC and PPO on the standard tasks (`gpguided_jax.tasks`), each
-tuned with the same budget on tuning seeds, then compared on held-out seeds.
+tuned with the same budget on tuning seeds, then compared on held-out seeds, by the protocol of
+`gpguided_jax.study`.
 
 Stages, per task (a preset of `config.PRESETS`: pendulum-v1, mountaincar-continuous,
 inverted-pendulum, inverted-double-pendulum); each writes under --out (default
@@ -7,15 +8,19 @@ docs/results/standard/<task>):
 
 ``tune``    Tuning seeds (100, 101; never reported). Every method and baseline gets the same budget:
             `CONFIGS_PER_METHOD` (8) configurations x the tuning seeds, each a full run of the
-            preset's environment steps. Coordinate search, as the swing-up study's: a stage of four
-            learning rates, then stages of two values of the next parameter, each keeping the best
-            configuration so far (`grids`, `baseline_grids`; written before any run). The discount
-            is searched as a horizon in seconds (`tasks.discount_for_horizon`). The score is the
-            final undiscounted return of the deterministic policy (last 10% of evaluations, mean
-            over seeds). Writes tuning/<name>.json per method or baseline (--only: which).
-``heldout`` Held-out seeds (1000-1009): each method with `gpguided reproduce`'s driver and its tuned
-            settings, each baseline per seed; wall time per method. Writes methods/<name>/ (the
-            run), heldout/<name>.npz (return curves against environment steps) and .json.
+            preset's environment steps. Coordinate search (`study.coordinate_search`): a stage of
+            four learning rates, then stages of two values of the next parameter, each keeping the
+            best configuration so far (`grids`, `baseline_grids`; written before any run), from
+            the preset's own settings (`study.preset_own`). The discount is searched as a horizon
+            in seconds (`tasks.discount_for_horizon`). The score is the final undiscounted return
+            of the deterministic policy (last 10% of evaluations, mean over seeds). Writes
+            tuning/<name>.json per method or baseline (--only: which).
+``heldout`` Held-out seeds (1000-1009): each method alone through `gpguided reproduce`'s driver
+            with its tuned settings over the preset's own, each baseline per seed; wall time per
+            method (`reproduce`'s: its fit and run, compilation included). Writes methods/<name>/
+            (the run), heldout/<name>.npz (return curves against environment steps,
+            `study.env_steps`) and .json. It resumes: a name whose .json holds the same seeds and
+            settings is not run again.
 ``report``  tuning.json (the tuning records gathered), the figure (return of the deterministic
             policy against environment steps, mean and 95% t-band over seeds, the threshold
             dashed) and heldout_table.json, from which `docs_tables.py` renders the tables.
@@ -30,11 +35,8 @@ from __future__ import annotations
 
 import argparse
 import glob
-import json
 import math
 import os
-import sys
-import time
 
 import matplotlib
 
@@ -43,19 +45,19 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import gpguided_jax  # noqa: E402
-from gpguided_jax import baselines, checkpoints, reproduce, runtime, summaries, sweep, tasks  # noqa: E402
+from gpguided_jax import baselines, checkpoints, runtime, study, summaries, tasks  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
 from gpguided_jax import stats as stats_lib  # noqa: E402
 
-METHODS = config_lib.METHODS
+METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction")  # `grids`
 BASELINES = ("ppo", "sac")
 # On a task whose episodes end early, each method again with the settings tuned above and
 # `episode_end='restart'` (an episode that ends is restarted in its remaining slots, so every slot
 # is an environment step, as for PPO and SAC): `heldout --only reinforce_restart ...`.
 RESTARTED = tuple(f"{m}_restart" for m in METHODS)
 CONFIGS_PER_METHOD = 8
-TUNING_SEEDS = (100, 101)
-HELDOUT_SEEDS = tuple(range(1000, 1010))
+TUNING_SEEDS = study.TUNING_SEEDS
+HELDOUT_SEEDS = study.HELDOUT_SEEDS
 NUM_EVALS = 26  # 25 intervals: brax PPO (2,000 steps an iteration) then stops at exactly 100k steps
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -75,14 +77,6 @@ REFERENCES = {
                                 "InvertedDoublePendulum; gymnasium counts "
                                 "InvertedDoublePendulum-v4 solved at 9,100 over its 1,000 steps",
 }
-
-
-def log(msg: str) -> None:
-    print(f"[{time.strftime('%X')}] {msg}", file=sys.stderr, flush=True)
-
-
-def base_config(task: str, method: str, **overrides) -> config_lib.TrainConfig:
-    return config_lib.preset(task, method=method, **overrides)
 
 
 def horizons(task: str) -> list[float]:
@@ -123,47 +117,32 @@ def _discount(task: str, horizon: float) -> float:
     return tasks.discount_for_horizon(horizon, tasks.make_task(config_lib.PRESETS[task]["env"]).dt)
 
 
+def method_overrides(task: str, method: str, settings: dict) -> dict:
+    """The config overrides of a method's settings (a 'horizon' as its discount) over the preset's
+    own."""
+    return study.merge_overrides(
+        study.preset_own(task, method),
+        {("discount" if k == "horizon" else k): (_discount(task, v) if k == "horizon" else v)
+         for k, v in settings.items()})
+
+
 def budget(task: str) -> int:
-    cfg = base_config(task, "reinforce")
-    return cfg.num_updates * cfg.episodes_per_update * cfg.episode_length
-
-
-def method_env_steps(cfg) -> np.ndarray:
-    """(num_updates,) environment steps spent when each record's deterministic evaluation ran
-    (before that update's episodes; the hyperparameter fit's episodes included)."""
-    b = summaries.task_budget(cfg)
-    return b.fit_steps + b.steps_per_update * np.arange(cfg.num_updates)
-
-
-def _final(curves: np.ndarray) -> np.ndarray:
-    return summaries.final_performance(np.asarray(curves, float))
+    return study.learning_steps(config_lib.preset(task, method="reinforce"))
 
 
 # ------------------------------------------------------------------------------------------ tune
 
 
 def tune_method(task: str, method: str, seeds) -> dict:
-    chosen: dict = {}
-    tried: list[dict] = []
-    for param, values in grids(task)[method]:
-        field = "discount" if param == "horizon" else param
-        sweep_values = [_discount(task, v) for v in values] if param == "horizon" else values
-        fixed = method_overrides(task, {k: v for k, v in chosen.items() if k != param})
-        t0 = time.perf_counter()
-        res = sweep.run_sweep(field, sweep_values, method=method, preset=task, seeds=seeds,
-                              overrides=fixed, progress=lambda m: None)
-        for i, v in enumerate(values):
-            score = float(_final(res.records["eval_return"][i]).mean())
-            bad = int(np.sum(np.any(res.records["nonfinite_grad"][i] > 0, axis=-1))
-                      + np.sum(np.any(res.records["gp_guard"][i] > 0, axis=-1)))
-            tried.append(dict(settings={**chosen, param: float(v)}, score=score, unhealthy_seeds=bad))
-            log(f"[tune {task} {method}] {param}={v:.4g} (with {chosen}): return {score:.1f}")
-        log(f"[tune {task} {method}] stage {param}: {time.perf_counter() - t0:.0f}s")
-        chosen = dict(max(tried, key=lambda t: t["score"])["settings"])
-    return dict(tried=tried, chosen=chosen)
+    def evaluate(configs):
+        return study.sweep_stage([method_overrides(task, method, s) for s in configs],
+                                 study.final_return, method=method, preset=task, seeds=seeds)
+
+    return study.coordinate_search(study.stages(grids(task)[method]), evaluate,
+                                   log=lambda m: study.log(f"[tune {task} {method}] {m}"))
 
 
-def baseline_kwargs(task: str, name: str, settings: dict) -> dict:
+def baseline_kwargs(task: str, settings: dict) -> dict:
     out = {k: v for k, v in settings.items() if k != "horizon"}
     if "horizon" in settings:
         out["discounting"] = _discount(task, settings["horizon"])
@@ -173,116 +152,93 @@ def baseline_kwargs(task: str, name: str, settings: dict) -> dict:
 
 
 def run_baseline(task: str, name: str, seed: int, settings: dict) -> baselines.TaskResult:
-    cfg = base_config(task, "reinforce")
+    cfg = config_lib.preset(task, method="reinforce")
     return baselines.train_on_task(name, cfg.env, budget(task), cfg.episode_length, seed,
-                                   num_evals=NUM_EVALS, **baseline_kwargs(task, name, settings))
-
-
-def _baseline_score(results) -> float:
-    return float(np.mean([_final(r.episode_return[None, 1:])[0] for r in results]))
+                                   num_evals=NUM_EVALS, **baseline_kwargs(task, settings))
 
 
 def tune_baseline(task: str, name: str, seeds) -> dict:
-    chosen: dict = {}
-    tried: list[dict] = []
-    for param, values in baseline_grids(task)[name]:
-        for v in values:
-            settings = {**chosen, param: v}
-            t0 = time.perf_counter()
+    def evaluate(configs):
+        out = []
+        for settings in configs:
             results = [run_baseline(task, name, s, settings) for s in seeds]
-            score = _baseline_score(results)
-            tried.append(dict(settings=settings, score=score,
-                              wall_s=float(sum(r.wall_time for r in results))))
-            log(f"[tune {task} {name}] {settings}: return {score:.1f} "
-                f"({time.perf_counter() - t0:.0f}s)")
-        chosen = dict(max(tried, key=lambda t: t["score"])["settings"])
-    return dict(tried=tried, chosen=chosen)
+            out.append(dict(score=float(np.mean([study.final(r.episode_return[None, 1:])[0]
+                                                 for r in results])),
+                            wall_s=float(sum(r.wall_time for r in results))))
+        return out
+
+    return study.coordinate_search(study.stages(baseline_grids(task)[name]), evaluate,
+                                   log=lambda m: study.log(f"[tune {task} {name}] {m}"))
 
 
 def tune(task: str, out: str, only: list[str]) -> None:
     """Tunes each of `only`, writing tuning/<name>.json (one file each, so that methods and
     baselines can be tuned by separate processes); `report` gathers them into tuning.json."""
-    # tuning starts from the preset's own settings, whatever an earlier tuning chose
-    config_lib.METHOD_PRESETS.pop(task, None)
-    os.makedirs(os.path.join(out, "tuning"), exist_ok=True)
     for name in only:
-        log(f"[tune {task}] {name}")
+        study.log(f"[tune {task}] {name}")
         result = (tune_baseline(task, name, TUNING_SEEDS) if name in BASELINES
                   else tune_method(task, name, TUNING_SEEDS))
         grid = (baseline_grids(task) if name in BASELINES else grids(task))[name]
-        checkpoints.atomic_write_text(os.path.join(out, "tuning", f"{name}.json"),
-                                      json.dumps({"grid": grid, **result}, indent=2))
+        study.write_json(os.path.join(out, "tuning", f"{name}.json"), {"grid": grid, **result})
 
 
 def gather_tuning(task: str, out: str) -> dict:
     """tuning.json: every tuned method's and baseline's record, in a fixed order."""
     methods = {}
     for name in (*METHODS, *BASELINES):
-        path = os.path.join(out, "tuning", f"{name}.json")
-        if os.path.exists(path):
-            with open(path) as f:
-                methods[name] = json.load(f)
+        rec = study.read_json(os.path.join(out, "tuning", f"{name}.json"))
+        if rec is not None:
+            methods[name] = rec
     report = {"task": task, "seeds": list(TUNING_SEEDS), "env_steps": budget(task),
               "methods": methods}
-    checkpoints.atomic_write_text(os.path.join(out, "tuning.json"), json.dumps(report, indent=2))
+    study.write_json(os.path.join(out, "tuning.json"), report)
     return report
 
 
 # --------------------------------------------------------------------------------------- heldout
 
 
-def method_overrides(task: str, settings: dict) -> dict:
-    return {("discount" if k == "horizon" else k): (_discount(task, v) if k == "horizon" else v)
-            for k, v in settings.items()}
-
-
 def heldout(task: str, out: str, seeds, only: list[str], part: str | None = None) -> None:
     """Each of `only` on the held-out seeds with its tuned settings (tuning/<name>.json; the
-    preset's own without one), into heldout/<name>.npz and .json. `part` 'K/N': a baseline's seeds
-    K, K + N, ... only, into heldout/<name>.partK.npz (N processes share the seeds; `report`
-    joins the parts)."""
-    os.makedirs(os.path.join(out, "heldout"), exist_ok=True)
+    preset's own without one), into heldout/<name>.npz and .json; a name whose .json holds these
+    seeds and settings is not run again. `part` 'K/N': a baseline's seeds K, K + N, ... only, into
+    heldout/<name>.partK.npz (N processes share the seeds; `report` joins the parts)."""
     suffix = ""
     if part is not None:
         k, n = map(int, part.split("/"))
         seeds, suffix = list(seeds)[k::n], f".part{k}"
     for name in only:
         method, end = _method_and_end(name)
-        path = os.path.join(out, "tuning", f"{method}.json")
-        settings = {}
-        if os.path.exists(path):
-            with open(path) as f:
-                settings = json.load(f)["chosen"]
+        settings = study.read_json(os.path.join(out, "tuning", f"{method}.json"),
+                                   {}).get("chosen", {})
         meta = {"seeds": list(seeds), "settings": settings}
-        if method in METHODS:  # its own run: its wall time includes its fit and compilation
-            run_dir = os.path.join(out, "methods", name)
-            t0 = time.perf_counter()
-            # the tuned settings are the preset's (config.METHOD_PRESETS, checked against the
-            # tuning record by the tests); passed here too, so that this stage runs right after
-            # the tuning
-            res = reproduce.reproduce(task, seeds, [method], run_dir, chunk_size=25,
-                                      overrides={**method_overrides(task, settings),
-                                                 "episode_end": end})
-            meta["wall_s"] = time.perf_counter() - t0
+        if method in METHODS:
             meta["episode_end"] = end
-            assert res["complete"]
-            with np.load(os.path.join(run_dir, "results.npz")) as f:
-                curves = {"return": f["eval_return"][0]}
-            cfg = base_config(task, method, episode_end=end)
-            curves["steps"] = method_env_steps(cfg)
-            curves["steps_used"] = steps_used(run_dir, cfg)
+        path = os.path.join(out, "heldout", f"{name}{suffix}")
+        if study.finished(path + ".json", **meta):
+            study.log(f"[{task} {name}] done with these seeds and settings: {path}.json")
+            continue
+        if method in METHODS:  # alone: its wall time includes its fit and compilation
+            run_dir = os.path.join(out, "methods", name)
+            overrides = {**method_overrides(task, method, settings), "episode_end": end}
+            run = study.run_method(task, method, seeds, run_dir, overrides, chunk_size=25,
+                                   gp_program="shared")
+            meta["wall_s"] = run.wall_s
+            curves = {"return": run.records["eval_return"], "steps": run.env_steps,
+                      "steps_used": steps_used(run_dir, config_lib.preset(task, method=method,
+                                                                          **overrides))}
         else:
             rs = []
             for s in seeds:
                 r = run_baseline(task, name, s, settings)
-                log(f"[{task} {name}] seed {s}: {r.env_steps[-1]} steps, {r.wall_time:.0f}s, "
-                    f"return {r.episode_return[-1]:.1f}")
+                study.log(f"[{task} {name}] seed {s}: {r.env_steps[-1]} steps, {r.wall_time:.0f}s, "
+                          f"return {r.episode_return[-1]:.1f}")
                 rs.append(r)
             curves = {"steps": rs[0].env_steps, "return": np.stack([r.episode_return for r in rs])}
             meta["wall_s"] = float(sum(r.wall_time for r in rs))
-        checkpoints.atomic_savez(os.path.join(out, "heldout", f"{name}{suffix}.npz"), **curves)
-        checkpoints.atomic_write_text(os.path.join(out, "heldout", f"{name}{suffix}.json"),
-                                      json.dumps(meta, indent=2))
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        checkpoints.atomic_savez(path + ".npz", **curves)
+        study.write_json(path + ".json", meta)
 
 
 def _join_parts(out: str, name: str) -> None:
@@ -296,15 +252,13 @@ def _join_parts(out: str, name: str) -> None:
     for p in parts:
         with np.load(p) as f:
             curves.append({k: f[k] for k in f.files})
-        with open(p[:-4] + ".json") as f:
-            metas.append(json.load(f))
+        metas.append(study.read_json(p[:-4] + ".json"))
     seeds = [s for m in metas for s in m["seeds"]]
     order = np.argsort(seeds)
     ret = np.concatenate([c["return"] for c in curves])[order]
     checkpoints.atomic_savez(base + ".npz", steps=curves[0]["steps"], **{"return": ret})
-    checkpoints.atomic_write_text(base + ".json", json.dumps(
-        {"seeds": sorted(seeds), "settings": metas[0]["settings"],
-         "wall_s": float(sum(m["wall_s"] for m in metas))}, indent=2))
+    study.write_json(base + ".json", {"seeds": sorted(seeds), "settings": metas[0]["settings"],
+                                      "wall_s": float(sum(m["wall_s"] for m in metas))})
 
 
 # ---------------------------------------------------------------------------------------- report
@@ -345,8 +299,7 @@ def report(task: str, out: str) -> None:
                 curves[f"{n}_steps"], curves[f"{n}_return"] = f["steps"], f["return"]
                 if "steps_used" in f:
                     curves[f"{n}_used"] = f["steps_used"]
-            with open(path[:-4] + ".json") as f:
-                m = json.load(f)
+            m = study.read_json(path[:-4] + ".json")
             meta["wall_s"][n], meta["seeds"] = m["wall_s"], m["seeds"]
     threshold = tasks.THRESHOLDS[config_lib.PRESETS[task]["env"]]
     terminates = tasks.make_task(config_lib.PRESETS[task]["env"]).terminates
@@ -357,10 +310,9 @@ def report(task: str, out: str) -> None:
         steps, ret = curves[f"{n}_steps"], np.asarray(curves[f"{n}_return"], float)
         if n in BASELINES:  # brax evaluates the initial policy first; the final 10% as ours
             steps, ret = steps[1:], ret[:, 1:]
-        final = _final(ret)
+        final = study.final(ret)
         lo, hi = stats_lib.bootstrap_ci(final)
-        hit = ret >= threshold
-        reach = np.where(hit.any(1), steps[hit.argmax(1)], np.nan)
+        reach = study.steps_to(steps, ret, threshold, never=np.nan)
         rows.append(dict(method=n, seeds=int(ret.shape[0]), final_return_iqm=stats_lib.iqm(final),
                          ci95_low=lo, ci95_high=hi, final_return_mean=float(final.mean()),
                          steps_to_threshold=[None if np.isnan(v) else int(v) for v in reach],
@@ -373,9 +325,7 @@ def report(task: str, out: str) -> None:
             used = (curves[f"{n}_used"] if n not in BASELINES
                     else np.full(ret.shape[0], float(steps[-1])))
             rows[-1]["steps_used_median"] = float(np.median(used))
-        mean, half = stats_lib.t_interval(ret)
-        ax.plot(steps, mean, label=n, ls=":" if n in RESTARTED else "-")
-        ax.fill_between(steps, mean - half, mean + half, alpha=0.2)
+        study.plot_band(ax, steps, ret, label=n, ls=":" if n in RESTARTED else "-")
     ax.axhline(threshold, color="k", ls="--", lw=0.8)
     ax.set_xlabel("environment steps")
     ax.set_ylabel("return of the deterministic policy")
@@ -385,11 +335,11 @@ def report(task: str, out: str) -> None:
     figure = os.path.join(ROOT, "docs", "figures", f"standard_{task}.png")
     fig.savefig(figure, dpi=110)
     plt.close(fig)
-    checkpoints.atomic_write_text(os.path.join(out, "heldout_table.json"), json.dumps(
-        {"task": task, "threshold": threshold, "seeds": meta["seeds"], "rows": rows,
-         "budget": budget(task), "fit_steps": summaries.task_budget(base_config(task, "gp_pg")).fit_steps,
-         "reference": REFERENCES.get(task)}, indent=2))
-    log(f"wrote {figure} and {out}/heldout_table.json")
+    fit_steps = summaries.task_budget(config_lib.preset(task, method="gp_pg")).fit_steps
+    study.write_json(os.path.join(out, "heldout_table.json"), {
+        "task": task, "threshold": threshold, "seeds": meta["seeds"], "rows": rows,
+        "budget": budget(task), "fit_steps": fit_steps, "reference": REFERENCES.get(task)})
+    study.log(f"wrote {figure} and {out}/heldout_table.json")
 
 
 def main(argv=None) -> int:

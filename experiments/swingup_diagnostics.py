@@ -2,8 +2,7 @@
 100-104, never reported as results; nothing is chosen from them).
 
 1. ``warm``: each of the four methods, with its white-noise swing-up settings
-   (`swingup_study.white_noise_settings`; or `--warm-lr`), starts
-   from the RBF
+   (`swingup_study.study_config`; or `--warm-lr`), starts from the RBF
    controller fitted to the energy-pumping controller (`swingup.fit_controller`; it swings up from
    ~99% of start states when run deterministically) instead of from theta_c = 0. If the policy
    gradient keeps (or improves) a swing-up once it has one, what the methods lack is a way to find
@@ -36,7 +35,7 @@ from gpguided_jax import config as config_lib
 from gpguided_jax import train as train_lib
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from swingup_study import white_noise_settings  # noqa: E402
+from swingup_study import METHODS, study_config  # noqa: E402
 
 SEEDS = (100, 101, 102, 103, 104)
 
@@ -45,18 +44,18 @@ def log(msg):
     print(f"[{time.strftime('%X')}] {msg}", file=sys.stderr, flush=True)
 
 
-def warm_start(seeds, learning_rate=None) -> dict:
+def warm_start(seeds, tuning: dict, learning_rate=None) -> dict:
     out = {}
-    cfg0 = config_lib.preset("swingup", method="gp_pg", dtype="float32")
+    cfg0 = study_config(tuning, "gp_pg", dtype="float32")
     controller = train_lib.make_controller(cfg0)
     theta_fit, mse = swingup.fit_controller(
         controller, cfg0.pendulum, swingup.energy_pumping_policy(cfg0.pendulum),
         jax.random.PRNGKey(7), episode_length=cfg0.episode_length, num_episodes=100)
     keys = sharding.seed_keys(seeds)
     priors = jax.jit(jax.vmap(train_lib.make_train(cfg0).fit_kernel_for_seed))(keys)
-    for m in config_lib.METHODS:
+    for m in METHODS:
         lr = {} if learning_rate is None else {"learning_rate": learning_rate}
-        cfg = config_lib.preset("swingup", method=m, dtype="float32", **lr)
+        cfg = study_config(tuning, m, dtype="float32", **lr)
         train = train_lib.make_train(cfg)
         if cfg.uses_gp:
             state = jax.jit(jax.vmap(lambda k, p, t=train, c=cfg: t.init(k, c, p)))(keys, priors)
@@ -111,12 +110,13 @@ def main(argv=None) -> int:
         with open(path) as f:
             report = json.load(f)
     report["seeds"] = list(SEEDS)
-    with white_noise_settings(os.path.join(args.out, "tuning.json")):  # the white-noise study's
-        if "warm" in args.parts:
-            key = "warm_start" if args.warm_lr is None else f"warm_start_lr_{args.warm_lr:g}"
-            report[key] = warm_start(SEEDS, args.warm_lr)
-        if "sac" in args.parts:
-            report["sac_long_horizon"] = sac_long_horizon(SEEDS)
+    with open(os.path.join(args.out, "tuning.json")) as f:  # the white-noise study's
+        tuning = json.load(f)
+    if "warm" in args.parts:
+        key = "warm_start" if args.warm_lr is None else f"warm_start_lr_{args.warm_lr:g}"
+        report[key] = warm_start(SEEDS, tuning, args.warm_lr)
+    if "sac" in args.parts:
+        report["sac_long_horizon"] = sac_long_horizon(SEEDS)
     checkpoints.atomic_write_text(path, json.dumps(report, indent=2))
     print(json.dumps(report, indent=2))
     return 0

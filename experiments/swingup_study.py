@@ -1,39 +1,42 @@
 """The swing-up question: does GP-guided exploration make policy search learn faster? The four
 methods against brax PPO and SAC on the swing-up preset, tuned with equal budgets on tuning seeds,
-then compared on held-out seeds.
+then compared on held-out seeds, by the protocol of `gpguided_jax.study`.
 
 Stages (each writes under --out, default docs/results/swingup):
 
 ``tune``  Tuning seeds (100, 101 by default; never reported). Every method and baseline gets the
           same budget: `CONFIGS_PER_METHOD` (8) configurations x the tuning seeds, each a full run
-          (the preset's env-step budget). The search is coordinate-wise: a first stage of four values
-          of the learning rate, then stages of two values of the next parameter, each stage keeping
-          the best configuration so far (`GRIDS`, `BASELINE_GRIDS`). Our methods' stages are one
+          (the preset's env-step budget). The search is coordinate-wise (`study.coordinate_search`):
+          a first stage of four values of the learning rate, then stages of two values of the next
+          parameter, each stage keeping the best configuration so far (`GRIDS`, `BASELINE_GRIDS`),
+          from the preset's own settings (`study.preset_own`). Our methods' stages are one
           `sweep.run_sweep` each (all values x seeds as one vmapped program). A configuration's
           score is the final success rate of the deterministic controller (mean over the last 10%
           of updates or the last evaluation, mean over seeds), ties broken by the final reward per
           step. Writes tuning.json (every configuration tried, its score, the choice) and
           docs/tuning_swingup.md.
-``heldout`` Held-out seeds (1000-1009): the four methods with `gpguided reproduce --preset swingup`
-          with this study's tuned settings (`white_noise_settings`: the preset's own, in
-          `config.METHOD_PRESETS`, are the exploration study's), PPO and SAC per seed with
-          their tuned settings from tuning.json and the same environment-step budget. Writes
-          heldout.npz (curves), heldout.json (per-seed steps to 50% / 90% success, wall times).
+``heldout`` Held-out seeds (1000-1009): each of the four methods alone through `gpguided_jax.reproduce`
+          with this study's tuned settings over the preset's own (`white_noise_overrides`; the
+          preset's tuned ones, `config.METHOD_PRESETS`, are the exploration study's), into
+          methods/<method>/; PPO and SAC per seed with their tuned settings from tuning.json and
+          the same environment-step budget. Writes heldout.npz (curves), heldout.json (wall times:
+          a method's fit and run, compilation included, as `reproduce` measures them).
 ``gpfig``  What the GP sees on the swing-up task, early and late (Fig. 2/4 style), and whether
           each GP method's roll-outs reach the upright region sooner (`gp_figure`), seeds
           1000-1002.
 ``report`` The plot (success rate and reward per step of the deterministic policy against
           environment steps, mean and 95% t-band over seeds) and the steps-to-success table
-          (heldout.md), from heldout.npz/json.
+          (heldout.md, heldout_table.json), from heldout.npz/json.
 
-Curves. Our methods: after every update, `eval_episodes` (4) fresh episodes of the deterministic
-controller c(s) (records eval_success_rate, eval_reward), at the environment steps consumed so far
-(the GP methods' include the episodes collected for the hyperparameter fit); success is smoothed
-by a trailing mean over 5 updates (20 episodes). PPO and SAC: brax's evaluator with the
-deterministic policy (mean action) on 64 fresh episodes, `NUM_EVALS` times per run. Steps to X%
-success: the first curve point at or above X (per seed); a seed that never gets there counts as not
-reached, and the table gives the median over seeds with its bootstrap interval (infinite where
-more than half the seeds never reach it) and the number of seeds that reached it.
+Curves. Our methods: before every update's step, `eval_episodes` (4) fresh episodes of the
+deterministic controller c(s) (records eval_success_rate, eval_reward), at the environment steps
+spent when they ran (`study.env_steps`: the GP methods' include the episodes collected for the
+hyperparameter fit); success is smoothed by a trailing mean over 5 updates (20 episodes). PPO and
+SAC: brax's evaluator with the deterministic policy (mean action) on 64 fresh episodes,
+`NUM_EVALS` times per run. Steps to X% success: the first curve point at or above X (per seed); a
+seed that never gets there counts as not reached, and the table gives the median over seeds with
+its bootstrap interval (infinite where more than half the seeds never reach it) and the number of
+seeds that reached it.
 
 Usage:
   python experiments/swingup_study.py tune
@@ -45,8 +48,6 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import contextlib
-import json
 import math
 import os
 import sys
@@ -60,15 +61,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import gpguided_jax  # noqa: E402
-from gpguided_jax import baselines, checkpoints, reproduce, sharding, summaries, sweep  # noqa: E402
+from gpguided_jax import baselines, checkpoints, sharding, study  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
-from gpguided_jax import stats as stats_lib  # noqa: E402
 
-METHODS = config_lib.METHODS
 BASELINES = ("ppo", "sac")
 CONFIGS_PER_METHOD = 8
-TUNING_SEEDS = (100, 101)
-HELDOUT_SEEDS = tuple(range(1000, 1010))
+TUNING_SEEDS = study.TUNING_SEEDS
+HELDOUT_SEEDS = study.HELDOUT_SEEDS
 NUM_EVALS = 21
 SMOOTH = 5
 LN = math.log
@@ -84,6 +83,7 @@ GRIDS = {
     "guided_direction": [("learning_rate", [0.1, 0.3]), ("candidate_scale", [1.0, 9.0]),
                          ("age_penalty", [10.0, 1000.0]), ("inverse_temperature", [1.0, 100.0])],
 }
+METHODS = tuple(GRIDS)
 BASELINE_GRIDS = {
     "ppo": [("learning_rate", [1e-4, 3e-4, 1e-3, 3e-3]), ("entropy_cost", [1e-4, 1e-2]),
             ("unroll_length", [10, 50])],
@@ -91,122 +91,75 @@ BASELINE_GRIDS = {
             ("batch_size", [64, 512])],
 }
 BASELINE_FIXED = {"ppo": dict(deterministic_eval=True), "sac": dict(deterministic_eval=True)}
-
-
-def log(msg: str) -> None:
-    print(f"[{time.strftime('%X')}] {msg}", file=sys.stderr, flush=True)
+study.check_budget({**GRIDS, **BASELINE_GRIDS}, CONFIGS_PER_METHOD)
 
 
 def base_config(method: str, **overrides) -> config_lib.TrainConfig:
+    """The swing-up preset's config of `method` (its budget, physics and records)."""
     return config_lib.preset("swingup", method=method, **overrides)
 
 
-def env_steps_per_update(cfg) -> int:
-    return cfg.episodes_per_update * cfg.episode_length
+def white_noise_overrides(tuning: dict, method: str) -> dict:
+    """The config overrides of `method`'s settings chosen by this study's tuning (`tuning`:
+    tuning.json) over the preset's own, in place of the preset's tuned ones
+    (`config.METHOD_PRESETS['swingup']`, the exploration study's): the held-out runs, the GP
+    figure and experiments/swingup_diagnostics.py use these."""
+    return study.merge_overrides(study.preset_own("swingup", method),
+                                 tuning["methods"][method]["chosen"])
 
 
-def budget(cfg) -> int:
-    """Environment steps of one run of our methods (without the hyperfit episodes)."""
-    return cfg.num_updates * env_steps_per_update(cfg)
+def study_config(tuning: dict, method: str, **overrides) -> config_lib.TrainConfig:
+    """`method`'s config with this study's tuned settings (`white_noise_overrides`)."""
+    return base_config(method, **study.merge_overrides(white_noise_overrides(tuning, method),
+                                                       overrides))
 
 
-def method_env_steps(cfg) -> np.ndarray:
-    """(num_updates,) environment steps consumed by the end of each update (hyperfit included)."""
-    pre = cfg.hyperfit_episodes * cfg.episode_length if cfg.uses_gp else 0
-    return pre + env_steps_per_update(cfg) * np.arange(1, cfg.num_updates + 1)
-
-
-def score_method(records: dict) -> tuple[float, float]:
-    """(final deterministic success rate, final eval reward per step), means over seeds."""
-    succ = summaries.final_performance(np.asarray(records["eval_success_rate"], float))
-    rew = summaries.final_performance(np.asarray(records["eval_reward"], float))
-    return float(succ.mean()), float(rew.mean())
-
-
-def score_baseline(results: list) -> tuple[float, float]:
-    return (float(np.mean([r.success_rate[-1] for r in results])),
-            float(np.mean([r.reward_per_step[-1] for r in results])))
-
-
-def _best(tried: list[dict]) -> dict:
-    return max(tried, key=lambda t: (round(t["success"], 3), t["reward"]))
+def score_baseline(results: list) -> dict:
+    """The final success rate and reward per step of a baseline's runs, means over seeds."""
+    return dict(success=float(np.mean([r.success_rate[-1] for r in results])),
+                reward=float(np.mean([r.reward_per_step[-1] for r in results])))
 
 
 # ------------------------------------------------------------------------------------------ tune
 
 
-@contextlib.contextmanager
-def white_noise_settings(path: str = os.path.join("docs", "results", "swingup", "tuning.json")):
-    """The swing-up preset with this study's tuned settings (white noise, tuning.json) in place of
-    `config.METHOD_PRESETS['swingup']`, which holds the exploration study's
-    (experiments/exploration_study.py): the held-out runs, the GP figure and the diagnostics of
-    this study use these."""
-    with open(path) as f:
-        tuned = json.load(f)["methods"]
-    saved = config_lib.METHOD_PRESETS.get("swingup", {})
-    config_lib.METHOD_PRESETS["swingup"] = {m: dict(tuned[m]["chosen"]) for m in METHODS}
-    try:
-        yield
-    finally:
-        config_lib.METHOD_PRESETS["swingup"] = saved
-
-
-@contextlib.contextmanager
-def untuned():
-    """The swing-up preset without the tuned per-method settings (so that tuning starts from the
-    preset's own defaults, whatever the last tuning chose)."""
-    saved = config_lib.METHOD_PRESETS.get("swingup", {})
-    config_lib.METHOD_PRESETS["swingup"] = {}
-    try:
-        yield
-    finally:
-        config_lib.METHOD_PRESETS["swingup"] = saved
-
-
 def tune_method(method: str, seeds, dtype: str) -> dict:
-    chosen: dict = {}
-    tried: list[dict] = []
-    for param, values in GRIDS[method]:
-        t0 = time.perf_counter()
-        res = sweep.run_sweep(param, values, method=method, preset="swingup", seeds=seeds,
-                              overrides={**{k: v for k, v in chosen.items() if k != param}, "dtype": dtype},
-                              progress=lambda m: None)
-        for i, v in enumerate(values):
-            rec = {k: res.records[k][i] for k in ("eval_success_rate", "eval_reward")}
-            succ, rew = score_method(rec)
-            bad = int(np.sum(np.any(res.records["nonfinite_grad"][i] > 0, axis=-1))
-                      + np.sum(np.any(res.records["gp_guard"][i] > 0, axis=-1)))
-            tried.append(dict(settings={**chosen, param: float(v)}, success=succ, reward=rew,
-                              unhealthy_seeds=bad))
-            log(f"[tune {method}] {param}={v:.4g} (with {chosen}): success {succ:.2f}, "
-                f"reward {rew:.3f}")
-        log(f"[tune {method}] stage {param}: {time.perf_counter() - t0:.0f}s")
-        chosen = dict(_best(tried)["settings"])
-    return dict(tried=tried, chosen=chosen)
+    own = study.preset_own("swingup", method)
+
+    def evaluate(configs):
+        return study.sweep_stage([{**study.merge_overrides(own, s), "dtype": dtype}
+                                  for s in configs], study.final_success,
+                                 method=method, preset="swingup", seeds=seeds)
+
+    return study.coordinate_search(study.stages(GRIDS[method]), evaluate, key=study.by_success,
+                                   log=lambda m: study.log(f"[tune {method}] {m}"))
 
 
 def run_baseline(name: str, cfg, seed: int, settings: dict):
     fn = baselines.train_ppo if name == "ppo" else baselines.train_sac
-    return fn(cfg.pendulum, budget(cfg), cfg.episode_length, seed, num_evals=NUM_EVALS,
-              **{**BASELINE_FIXED[name], **settings})
+    return fn(cfg.pendulum, study.learning_steps(cfg), cfg.episode_length, seed,
+              num_evals=NUM_EVALS, **{**BASELINE_FIXED[name], **settings})
+
+
+def evaluate_baseline(name: str, cfg, seeds, kwargs=dict):
+    """`study.coordinate_search`'s evaluation of a baseline's configurations: each run on every
+    seed (`kwargs`: the trainer's arguments of a configuration's settings)."""
+    def evaluate(configs):
+        out = []
+        for settings in configs:
+            results = [run_baseline(name, cfg, s, kwargs(settings)) for s in seeds]
+            out.append({**score_baseline(results),
+                        "wall_s": float(sum(r.wall_time for r in results))})
+        return out
+
+    return evaluate
 
 
 def tune_baseline(name: str, seeds) -> dict:
-    cfg = base_config("reinforce", dtype="float32")
-    chosen: dict = {}
-    tried: list[dict] = []
-    for param, values in BASELINE_GRIDS[name]:
-        for v in values:
-            settings = {**chosen, param: v}
-            t0 = time.perf_counter()
-            results = [run_baseline(name, cfg, s, settings) for s in seeds]
-            succ, rew = score_baseline(results)
-            tried.append(dict(settings=settings, success=succ, reward=rew,
-                              wall_s=float(sum(r.wall_time for r in results))))
-            log(f"[tune {name}] {settings}: success {succ:.2f}, reward {rew:.3f} "
-                f"({time.perf_counter() - t0:.0f}s)")
-        chosen = dict(_best(tried)["settings"])
-    return dict(tried=tried, chosen=chosen)
+    evaluate = evaluate_baseline(name, base_config("reinforce", dtype="float32"), seeds)
+    return study.coordinate_search(study.stages(BASELINE_GRIDS[name]), evaluate,
+                                   key=study.by_success,
+                                   log=lambda m: study.log(f"[tune {name}] {m}"))
 
 
 def tuning_markdown(report: dict) -> str:
@@ -217,8 +170,9 @@ def tuning_markdown(report: dict) -> str:
         f"(tuning seeds {report['seeds']}, never reported; {report['dtype']}). Every method and "
         f"baseline had the same budget: {CONFIGS_PER_METHOD} configurations x "
         f"{len(report['seeds'])} seeds, each a full run of {report['env_steps']:,} environment "
-        "steps. Coordinate search: each stage tries the listed values of one parameter with the "
-        "best settings so far and keeps the best configuration seen; the score is the final "
+        "steps. Coordinate search from the preset's own settings: each stage tries the listed "
+        "values of one parameter with the best settings so far and keeps the best configuration "
+        "seen; the score is the final "
         "success rate of the deterministic policy, ties broken by its final reward per step "
         "(swing-up: about -2.9 for the energy-pumping controller, -6.6 for constant full torque, "
         "-9.2 for zero torque).",
@@ -240,94 +194,52 @@ def tuning_markdown(report: dict) -> str:
 
 
 def heldout(out: str, seeds, tuning: dict, dtype: str) -> None:
-    run_dir = os.path.join(out, "methods")
-    t0 = time.perf_counter()
-    stamps = []
-
-    def progress(msg):
-        stamps.append((time.perf_counter(), msg))
-        log(msg)
-
-    # one program per method: each method's wall time then includes its own compilation (the
-    # shared GP program would charge it all to the first GP method), as the study's files were made
-    res = reproduce.reproduce("swingup", seeds, METHODS, run_dir, dtype=dtype, chunk_size=20,
-                              progress=progress, gp_program="per_method")
-    if not res["complete"]:
-        raise RuntimeError("reproduce did not finish")
-    walls = {m: 0.0 for m in METHODS}
-    fit_s, prev = 0.0, t0
-    for t, msg in stamps:
-        if msg.startswith("hyperparameter fit"):
-            fit_s += t - prev
-        elif msg.startswith("["):
-            walls[msg[1:msg.index("]")]] += t - prev
-        prev = t
-    with np.load(os.path.join(run_dir, "results.npz")) as f:
-        rec = {k: f[k] for k in f.files}
-    curves, meta = {}, {"seeds": list(seeds), "wall_s": {}, "hyperfit_s": fit_s}
-    for i, m in enumerate(METHODS):
-        cfg = base_config(m, dtype=dtype)
-        curves[f"{m}_steps"] = method_env_steps(cfg)
-        curves[f"{m}_success"] = rec["eval_success_rate"][i]
-        curves[f"{m}_reward"] = rec["eval_reward"][i]
-        meta["wall_s"][m] = walls[m] + (fit_s if cfg.uses_gp else 0.0)
+    curves, meta = {}, {"seeds": list(seeds), "wall_s": {}}
+    for m in METHODS:  # each alone: its wall time holds its own fit and compilation
+        run = study.run_method("swingup", m, seeds, os.path.join(out, "methods", m),
+                               white_noise_overrides(tuning, m), dtype=dtype, chunk_size=20)
+        curves[f"{m}_steps"] = run.env_steps
+        curves[f"{m}_success"] = run.records["eval_success_rate"]
+        curves[f"{m}_reward"] = run.records["eval_reward"]
+        meta["wall_s"][m] = run.wall_s
     cfg = base_config("reinforce", dtype=dtype)
     for name in BASELINES:
         settings = tuning["methods"][name]["chosen"]
         rs = []
         for s in seeds:
             r = run_baseline(name, cfg, s, settings)
-            log(f"[{name}] seed {s}: {r.env_steps[-1]} steps, {r.wall_time:.0f}s, success "
-                f"{r.success_rate[-1]:.2f}, reward {r.reward_per_step[-1]:.3f}")
+            study.log(f"[{name}] seed {s}: {r.env_steps[-1]} steps, {r.wall_time:.0f}s, success "
+                      f"{r.success_rate[-1]:.2f}, reward {r.reward_per_step[-1]:.3f}")
             rs.append(r)
         curves[f"{name}_steps"] = rs[0].env_steps
         curves[f"{name}_success"] = np.stack([r.success_rate for r in rs])
         curves[f"{name}_reward"] = np.stack([r.reward_per_step for r in rs])
         meta["wall_s"][name] = float(sum(r.wall_time for r in rs))
     checkpoints.atomic_savez(os.path.join(out, "heldout.npz"), **curves)
-    checkpoints.atomic_write_text(os.path.join(out, "heldout.json"), json.dumps(meta, indent=2))
+    study.write_json(os.path.join(out, "heldout.json"), meta)
 
 
 # ---------------------------------------------------------------------------------------- report
 
 
 def smoothed(success: np.ndarray, name: str) -> np.ndarray:
-    """Our methods' per-update success (4 episodes) as a trailing mean over SMOOTH updates."""
-    if name in BASELINES:
-        return success
-    k = SMOOTH
-    c = np.cumsum(np.pad(success, ((0, 0), (1, 0))), axis=1)
-    n = np.minimum(np.arange(1, success.shape[1] + 1), k)
-    return (c[:, 1:] - c[:, np.maximum(np.arange(1, success.shape[1] + 1) - k, 0)]) / n
-
-
-def steps_to(steps: np.ndarray, success: np.ndarray, level: float) -> np.ndarray:
-    """Per seed: the first environment step at which success >= level (inf if never)."""
-    hit = success >= level - 1e-9
-    return np.where(hit.any(1), steps[hit.argmax(1)], np.inf)
-
-
-def median_ci(x: np.ndarray, reps: int = 10_000, seed: int = 0) -> tuple[float, float, float]:
-    """Median and percentile-bootstrap 95% interval (inf entries = never reached)."""
-    rng = np.random.default_rng(seed)
-    boots = np.median(rng.choice(x, size=(reps, len(x)), replace=True), axis=1)
-    q = lambda p: float(np.quantile(boots, p, method="nearest"))  # noqa: E731 (no inf - inf)
-    return float(np.median(x)), q(0.025), q(0.975)
+    """Our methods' per-update success (4 episodes) as a trailing mean over SMOOTH updates; the
+    baselines' evaluations (64 episodes each) as they are."""
+    return success if name in BASELINES else study.smoothed(success, SMOOTH)
 
 
 def report(out: str) -> str:
     with np.load(os.path.join(out, "heldout.npz")) as f:
         curves = {k: f[k] for k in f.files}
-    with open(os.path.join(out, "heldout.json")) as f:
-        meta = json.load(f)
+    meta = study.read_json(os.path.join(out, "heldout.json"))
     names = [*METHODS, *BASELINES]
-    rows, table = [], {}
+    rows = []
     for n in names:
         steps, succ = curves[f"{n}_steps"], smoothed(curves[f"{n}_success"], n)
         row = dict(method=n, seeds=int(succ.shape[0]))
         for level in (0.5, 0.9):
-            per_seed = steps_to(steps, succ, level)
-            med, lo, hi = median_ci(per_seed)
+            per_seed = study.steps_to(steps, succ, level, tol=1e-9)
+            med, lo, hi = study.median_ci(per_seed)
             key = f"steps_to_{int(level * 100)}"
             row[key] = per_seed.tolist()
             row[key + "_median"], row[key + "_low"], row[key + "_high"] = med, lo, hi
@@ -336,8 +248,7 @@ def report(out: str) -> str:
         row["final_reward"] = float(curves[f"{n}_reward"][:, -1].mean())
         row["wall_s"] = meta["wall_s"][n]
         rows.append(row)
-        table[n] = row
-    checkpoints.atomic_write_text(os.path.join(out, "heldout_table.json"), json.dumps(rows, indent=2))
+    study.write_json(os.path.join(out, "heldout_table.json"), rows)
 
     def fmt(r, key):
         k, n = r[key + "_reached"], r["seeds"]
@@ -362,9 +273,7 @@ def report(out: str) -> str:
     for i, n in enumerate(names):
         steps = curves[f"{n}_steps"]
         for ax, y in ((a, smoothed(curves[f"{n}_success"], n)), (b, curves[f"{n}_reward"])):
-            mean, half = stats_lib.t_interval(y)
-            ax.plot(steps, mean, color=f"C{i}", label=n, lw=1.5)
-            ax.fill_between(steps, mean - half, mean + half, color=f"C{i}", alpha=0.15)
+            study.plot_band(ax, steps, y, alpha=0.15, color=f"C{i}", label=n, lw=1.5)
     a.set(xlabel="environment steps", ylabel="swing-up success (deterministic policy)",
           ylim=(-0.03, 1.03))
     b.set(xlabel="environment steps", ylabel="reward per step (deterministic policy)")
@@ -387,13 +296,13 @@ GP_METHODS = ("gp_pg", "guided_variance", "guided_direction")
 UPRIGHT_BAND = 0.5  # rad: "in the upright region"
 
 
-def gp_figure(out: str, seeds, dtype: str, chunk: int = 10, episodes: int = 5) -> dict:
+def gp_figure(out: str, seeds, dtype: str, tuning: dict, chunk: int = 10, episodes: int = 5) -> dict:
     """What the GP sees, early and late (Fig. 2/4 on the swing-up task), and how soon each method's
     roll-outs reach the upright region.
 
-    Each GP method is trained with its tuned settings on `seeds` (held-out seeds; nothing is
-    chosen here) in chunks of `chunk` updates; after every chunk `episodes` roll-outs of the
-    method's own policy (GP and theta held fixed, keys apart from training) give the share of
+    Each GP method is trained with its tuned settings (`tuning`: tuning.json) on `seeds` (held-out
+    seeds; nothing is chosen here) in chunks of `chunk` updates; after every chunk `episodes`
+    roll-outs of the method's own policy (GP and theta held fixed, keys apart from training) give the share of
     steps within UPRIGHT_BAND of upright and the highest point reached (max of -cos phi, 1 =
     upright). For the first seed, the GP's relative variance sigma^2/sigma_f^2 and its value
     V(s) = Q_GP(s, c(s)) on a (phi, omega) grid, with the visited states, after the first chunk
@@ -401,7 +310,7 @@ def gp_figure(out: str, seeds, dtype: str, chunk: int = 10, episodes: int = 5) -
     """
     phi = np.linspace(-math.pi / 2, 3 * math.pi / 2, 73)
     omega = np.linspace(-8.0, 8.0, 65)
-    curves, snaps = _gp_runs(seeds, dtype, chunk, episodes, phi, omega)
+    curves, snaps = _gp_runs(seeds, dtype, tuning, chunk, episodes, phi, omega)
     _plot_gp_early_late(os.path.join(out, "swingup_gp_early_late.png"), snaps, phi, omega,
                         seeds, episodes)
     _plot_upright_region(os.path.join(out, "swingup_upright_region.png"), curves, seeds, episodes)
@@ -409,11 +318,11 @@ def gp_figure(out: str, seeds, dtype: str, chunk: int = 10, episodes: int = 5) -
                    "upright_share_mean": curves[m]["upright_share"].mean(0).tolist(),
                    "height_mean": curves[m]["height"].mean(0).tolist()} for m in GP_METHODS}
     summary["seeds"] = list(seeds)
-    checkpoints.atomic_write_text(os.path.join(out, "gp_figure.json"), json.dumps(summary, indent=2))
+    study.write_json(os.path.join(out, "gp_figure.json"), summary)
     return summary
 
 
-def _gp_runs(seeds, dtype, chunk, episodes, phi, omega):
+def _gp_runs(seeds, dtype, tuning, chunk, episodes, phi, omega):
     """`gp_figure`'s runs: per GP method the upright share and height after every chunk
     (curves), and the first seed's GP over the (phi, omega) grid after the first and the last
     chunk (snaps, keyed (method, 'early' or 'late'))."""
@@ -421,11 +330,12 @@ def _gp_runs(seeds, dtype, chunk, episodes, phi, omega):
     from gpguided_jax import train as train_lib
 
     keys = sharding.seed_keys(seeds)
-    fit = jax.jit(jax.vmap(train_lib.make_train(base_config("gp_pg", dtype=dtype)).fit_kernel_for_seed))
+    gp_pg = study_config(tuning, "gp_pg", dtype=dtype)
+    fit = jax.jit(jax.vmap(train_lib.make_train(gp_pg).fit_kernel_for_seed))
     priors = fit(keys)
     curves, snaps = {}, {}
     for m in GP_METHODS:
-        cfg = base_config(m, dtype=dtype)
+        cfg = study_config(tuning, m, dtype=dtype)
         train = train_lib.make_train(cfg)
         state = jax.jit(jax.vmap(lambda k, p, t=train, c=cfg: t.init(k, c, p)))(keys, priors)
 
@@ -453,7 +363,7 @@ def _gp_runs(seeds, dtype, chunk, episodes, phi, omega):
                     updates=(c + 1) * chunk)
         curves[m] = dict(updates=chunk * np.arange(1, cfg.num_updates // chunk + 1),
                          upright_share=np.stack(share, 1), height=np.stack(height, 1))
-        log(f"[gpfig {m}] upright share by chunk (mean over seeds): "
+        study.log(f"[gpfig {m}] upright share by chunk (mean over seeds): "
             f"{np.round(curves[m]['upright_share'].mean(0), 3).tolist()}")
     return curves, snaps
 
@@ -522,26 +432,20 @@ def main(argv=None) -> int:
     os.makedirs(args.out, exist_ok=True)
     path = os.path.join(args.out, "tuning.json")
     if args.stage == "tune":
-        rep = {"seeds": list(TUNING_SEEDS), "dtype": args.dtype, "methods": {}}
-        if os.path.exists(path):
-            with open(path) as f:
-                rep = json.load(f)
-        rep["env_steps"] = budget(base_config("reinforce", dtype=args.dtype))
+        header = {"seeds": list(TUNING_SEEDS), "dtype": args.dtype,
+                  "env_steps": study.learning_steps(base_config("reinforce", dtype=args.dtype))}
         for name in args.only or [*METHODS, *BASELINES]:
             t0 = time.perf_counter()
-            with untuned():
-                rep["methods"][name] = (tune_baseline(name, TUNING_SEEDS) if name in BASELINES
-                                        else tune_method(name, TUNING_SEEDS, args.dtype))
-            rep["methods"][name]["wall_s"] = time.perf_counter() - t0
-            checkpoints.atomic_write_text(path, json.dumps(rep, indent=2))
+            result = (tune_baseline(name, TUNING_SEEDS) if name in BASELINES
+                      else tune_method(name, TUNING_SEEDS, args.dtype))
+            rep = study.record_result(path, header, name,
+                                      {**result, "wall_s": time.perf_counter() - t0})
         checkpoints.atomic_write_text(os.path.join("docs", "tuning_swingup.md"), tuning_markdown(rep))
     elif args.stage == "heldout":
-        with open(path) as f, white_noise_settings(path):
-            heldout(args.out, HELDOUT_SEEDS, json.load(f), args.dtype)
+        heldout(args.out, HELDOUT_SEEDS, study.read_json(path), args.dtype)
         print(report(args.out))
     elif args.stage == "gpfig":
-        with white_noise_settings(path):
-            gp_figure(args.out, HELDOUT_SEEDS[:3], args.dtype)
+        gp_figure(args.out, HELDOUT_SEEDS[:3], args.dtype, study.read_json(path))
     else:
         print(report(args.out))
     return 0

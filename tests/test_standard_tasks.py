@@ -1,6 +1,7 @@
 """experiments/standard_tasks.py: the environment steps a method's learning episodes used."""
 
 import importlib.util
+import math
 import os
 import types
 
@@ -30,3 +31,56 @@ def test_steps_used_sums_the_episodes_lengths_before_their_ends(tmp_path):
     # restarted episodes fill their slots: every slot is a step
     cfg.episode_end = "restart"
     np.testing.assert_array_equal(_script().steps_used(str(tmp_path), cfg), [600, 600])
+
+
+def test_the_tuning_searches_the_horizon_as_a_discount_from_the_presets_own(monkeypatch):
+    """Each stage of a method's grid is one sweep: the horizon stage sweeps the discount; the
+    other fields are the preset's own (not the tuned `config.METHOD_PRESETS`) and the best so
+    far."""
+    from gpguided_jax import study, tasks
+
+    script = _script()
+    calls = []
+
+    def fake_sweep(field, values, *, method, preset, seeds, overrides, progress):
+        calls.append((field, list(values), overrides))
+        score = 10 * len(calls) + np.arange(len(values), dtype=float)  # the last, later the better
+        ret = np.broadcast_to(score[:, None, None], (len(values), len(seeds), 10))
+        return types.SimpleNamespace(records={"eval_return": ret})
+
+    monkeypatch.setattr(study.sweep, "run_sweep", fake_sweep)
+    res = script.tune_method("pendulum-v1", "reinforce", (100, 101))
+    assert [c[0] for c in calls] == ["learning_rate", "discount", "init_log_std"]
+    dt = tasks.make_task("gymnax:Pendulum-v1").dt
+    assert calls[1][1] == [tasks.discount_for_horizon(h, dt) for h in script.horizons("pendulum-v1")]
+    assert calls[0][2] == {"discount_horizon": 1.0}  # the preset's own horizon, not the tuned 0.5
+    assert calls[2][2] == {"learning_rate": 0.1, "discount": calls[1][1][1]}
+    assert res["chosen"] == {"learning_rate": 0.1, "horizon": 2.0,
+                             "init_log_std": math.log(tasks.make_task("gymnax:Pendulum-v1").max_action)}
+
+
+def test_heldout_skips_a_name_done_with_the_same_seeds_and_settings(tmp_path, monkeypatch):
+    from gpguided_jax import study
+
+    script = _script()
+    out = str(tmp_path)
+    study.write_json(f"{out}/tuning/reinforce.json", {"chosen": {"learning_rate": 0.03}})
+    done = {"seeds": [1000], "settings": {"learning_rate": 0.03}, "episode_end": "mask",
+            "wall_s": 1.0}
+    study.write_json(f"{out}/heldout/reinforce.json", done)
+    runs = []
+
+    def fake_run(preset, method, seeds, run_dir, overrides, **kw):
+        runs.append(overrides)
+        os.makedirs(run_dir, exist_ok=True)
+        np.savez(os.path.join(run_dir, "results.npz"), mean_return=np.ones((1, 1, 3)),
+                 mean_reward=np.ones((1, 1, 3)))
+        return study.MethodRun({"eval_return": np.ones((1, 3))}, np.arange(3), 2.0)
+
+    monkeypatch.setattr(study, "run_method", fake_run)
+    script.heldout("pendulum-v1", out, [1000], ["reinforce"])
+    assert runs == []
+    study.write_json(f"{out}/tuning/reinforce.json", {"chosen": {"learning_rate": 0.1}})
+    script.heldout("pendulum-v1", out, [1000], ["reinforce"])
+    assert runs == [{"learning_rate": 0.1, "discount_horizon": 1.0, "episode_end": "mask"}]
+    assert study.read_json(f"{out}/heldout/reinforce.json")["wall_s"] == 2.0
