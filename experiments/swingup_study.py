@@ -193,9 +193,21 @@ def tuning_markdown(report: dict) -> str:
 # --------------------------------------------------------------------------------------- heldout
 
 
-def heldout(out: str, seeds, tuning: dict, dtype: str) -> None:
+def heldout(out: str, seeds, tuning: dict, dtype: str, only=None) -> None:
+    """Each method alone and each baseline per seed on the held-out seeds, into heldout.npz and
+    heldout.json. With `only`, those of them alone; the others' curves stay as the files hold
+    them (for the same seeds)."""
     curves, meta = {}, {"seeds": list(seeds), "wall_s": {}}
-    for m in METHODS:  # each alone: its wall time holds its own fit and compilation
+    npz, js = os.path.join(out, "heldout.npz"), os.path.join(out, "heldout.json")
+    if only is not None and os.path.exists(npz):
+        kept = study.read_json(js)
+        if kept["seeds"] != list(seeds):
+            raise ValueError(f"{js} holds seeds {kept['seeds']}, not {list(seeds)}")
+        with np.load(npz) as f:
+            curves = {k: f[k] for k in f.files if k.rsplit("_", 1)[0] not in only}
+        meta["wall_s"] = {k: v for k, v in kept["wall_s"].items() if k not in only}
+    for m in (m for m in METHODS if only is None or m in only):
+        # each alone: its wall time holds its own fit and compilation
         run = study.run_method("swingup", m, seeds, os.path.join(out, "methods", m),
                                white_noise_overrides(tuning, m), dtype=dtype, chunk_size=20)
         curves[f"{m}_steps"] = run.env_steps
@@ -203,7 +215,7 @@ def heldout(out: str, seeds, tuning: dict, dtype: str) -> None:
         curves[f"{m}_reward"] = run.records["eval_reward"]
         meta["wall_s"][m] = run.wall_s
     cfg = base_config("reinforce", dtype=dtype)
-    for name in BASELINES:
+    for name in (b for b in BASELINES if only is None or b in only):
         settings = tuning["methods"][name]["chosen"]
         rs = []
         for s in seeds:
@@ -215,8 +227,10 @@ def heldout(out: str, seeds, tuning: dict, dtype: str) -> None:
         curves[f"{name}_success"] = np.stack([r.success_rate for r in rs])
         curves[f"{name}_reward"] = np.stack([r.reward_per_step for r in rs])
         meta["wall_s"][name] = float(sum(r.wall_time for r in rs))
-    checkpoints.atomic_savez(os.path.join(out, "heldout.npz"), **curves)
-    study.write_json(os.path.join(out, "heldout.json"), meta)
+    order = [f"{n}_{k}" for n in (*METHODS, *BASELINES) for k in ("steps", "success", "reward")]
+    checkpoints.atomic_savez(npz, **{k: curves[k] for k in order if k in curves})
+    study.write_json(js, {"seeds": meta["seeds"], "wall_s": {
+        n: meta["wall_s"][n] for n in (*METHODS, *BASELINES) if n in meta["wall_s"]}})
 
 
 # ---------------------------------------------------------------------------------------- report
@@ -425,7 +439,8 @@ def main(argv=None) -> int:
     ap.add_argument("stage", choices=("tune", "heldout", "report", "gpfig"))
     ap.add_argument("--out", default="docs/results/swingup")
     ap.add_argument("--dtype", default="float32", choices=config_lib.DTYPES)
-    ap.add_argument("--only", nargs="+", default=None, help="tune only these methods/baselines")
+    ap.add_argument("--only", nargs="+", default=None,
+                    help="tune or run held out only these methods/baselines")
     args = ap.parse_args(argv)
     if args.dtype == "float64":
         gpguided_jax.enable_x64()
@@ -442,7 +457,7 @@ def main(argv=None) -> int:
                                       {**result, "wall_s": time.perf_counter() - t0})
         checkpoints.atomic_write_text(os.path.join("docs", "tuning_swingup.md"), tuning_markdown(rep))
     elif args.stage == "heldout":
-        heldout(args.out, HELDOUT_SEEDS, study.read_json(path), args.dtype)
+        heldout(args.out, HELDOUT_SEEDS, study.read_json(path), args.dtype, args.only)
         print(report(args.out))
     elif args.stage == "gpfig":
         gp_figure(args.out, HELDOUT_SEEDS[:3], args.dtype, study.read_json(path))
