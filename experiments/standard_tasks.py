@@ -49,7 +49,8 @@ from gpguided_jax import baselines, checkpoints, runtime, study, summaries, task
 from gpguided_jax import config as config_lib  # noqa: E402
 from gpguided_jax import stats as stats_lib  # noqa: E402
 
-METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction")  # `grids`
+# the paper's four, and gp_critic (`gpguided_jax.critic`), each with its grid (`grids`)
+METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction", "gp_critic")
 BASELINES = ("ppo", "sac")
 # On a task whose episodes end early, each method again with the settings tuned above and
 # `episode_end='restart'` (an episode that ends is restarted in its remaining slots, so every slot
@@ -88,7 +89,10 @@ def horizons(task: str) -> list[float]:
 def grids(task: str) -> dict:
     """(parameter, values) stages per method: 4 + 2 + 2 = 8 configurations (guided_direction:
     2 + 2 + 2 + 2). 'horizon' is the discount as a horizon; noise scales are in units of the
-    action bound u (its square for variances)."""
+    action bound u (its square for variances). gp_critic's grid is over its own settings, from
+    the preset's (its gp_pg step's learning rate, horizon and noise): the surrogate's step size,
+    the trust region delta (nats of mean KL; 0.05 between the two) and the surrogate steps per
+    update K (50 between the two; each value its own program, K fixing the program)."""
     u = tasks.make_task(config_lib.PRESETS[task]["env"]).max_action
     lr = ("learning_rate", [0.003, 0.01, 0.03, 0.1])
     h = ("horizon", horizons(task))
@@ -99,6 +103,8 @@ def grids(task: str) -> dict:
         "guided_direction": [("learning_rate", [0.01, 0.03]), h,
                              ("candidate_scale", [0.25 * u * u, 2.0 * u * u]),
                              ("inverse_temperature", [1.0, 100.0])],
+        "gp_critic": [("critic_learning_rate", [0.003, 0.01, 0.03, 0.1]),
+                      ("trust_region", [0.01, 0.2]), ("critic_steps", [10, 200])],
     }
 
 

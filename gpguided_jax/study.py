@@ -239,7 +239,8 @@ def sweep_stage(configs: list[dict], score: Callable[[dict], dict], *, method: s
     """A stage of a method's tuning as one `sweep.run_sweep` program.
 
     Args:
-      configs: the config overrides of each configuration; they differ in one traced field.
+      configs: the config overrides of each configuration; they differ in one field (a traced
+        one: one program for the stage; a static one: one program per configuration).
       score: maps one configuration's records ((seeds, updates) each) to its scores.
 
     Returns:
@@ -253,13 +254,21 @@ def sweep_stage(configs: list[dict], score: Callable[[dict], dict], *, method: s
         raise ValueError(f"a sweep's configurations differ in one field, these in {varying}")
     field = varying[0]
     common = {k: configs[0][k] for k in fields if k != field}
-    res = sweep.run_sweep(field, [c[field] for c in configs], method=method, preset=preset,
-                          seeds=seeds, overrides=common, progress=progress)
-    out = []
-    for i in range(len(configs)):
-        rec = {k: v[i] for k, v in res.records.items()}
-        out.append({**score(rec), "unhealthy_seeds": unhealthy_seeds(rec)})
-    return out
+    if field in config_lib.STATIC_FIELDS:
+        # a static field fixes the program: each configuration is its own one-value sweep
+        recs = []
+        for c in configs:
+            lr = float(config_lib.preset(preset, method=method, **c).learning_rate)
+            res = sweep.run_sweep("learning_rate", [lr], method=method, preset=preset,
+                                  seeds=seeds, overrides={k: v for k, v in c.items()
+                                                          if k != "learning_rate"},
+                                  progress=progress)
+            recs.append({k: v[0] for k, v in res.records.items()})
+    else:
+        res = sweep.run_sweep(field, [c[field] for c in configs], method=method, preset=preset,
+                              seeds=seeds, overrides=common, progress=progress)
+        recs = [{k: v[i] for k, v in res.records.items()} for i in range(len(configs))]
+    return [{**score(rec), "unhealthy_seeds": unhealthy_seeds(rec)} for rec in recs]
 
 
 # ---------------------------------------------------------------------------------------- heldout

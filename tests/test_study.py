@@ -89,6 +89,24 @@ def test_a_stage_is_one_sweep_over_the_field_its_configurations_differ_in(monkey
                           method="gp_pg", preset="tiny", seeds=(100,))
 
 
+def test_a_stage_over_a_static_field_runs_each_configuration_as_its_own_program(monkeypatch):
+    calls = []
+
+    def fake_sweep(field, values, *, method, preset, seeds, overrides, progress):
+        calls.append(dict(field=field, values=values, overrides=overrides))
+        k = overrides["critic_steps"]
+        return types.SimpleNamespace(records={"eval_return": np.full((1, len(seeds), 3), float(k)),
+                                              "gp_guard": np.zeros((1, len(seeds), 3))})
+
+    monkeypatch.setattr(study.sweep, "run_sweep", fake_sweep)
+    configs = [{"trust_region": 0.2, "critic_steps": k} for k in (10, 200)]
+    out = study.sweep_stage(configs, study.final_return, method="gp_critic", preset="tiny",
+                            seeds=(100, 101))
+    lr = float(C.preset("tiny", method="gp_critic").learning_rate)
+    assert calls == [dict(field="learning_rate", values=[lr], overrides=c) for c in configs]
+    assert [o["score"] for o in out] == [10.0, 200.0]
+
+
 # ------------------------------------------------------------------------------------------ config
 
 
