@@ -18,7 +18,10 @@ Output directory layout (every file is written atomically: to a temporary name, 
   results.npz              methods, seeds, per-update records of shape (methods, seeds, updates)
                            (NaN past a method's last update, or for a record it does not keep),
                            num_updates (methods,) and env_steps (methods, updates), the
-                           environment steps spent when each update's record was taken
+                           environment steps spent by the end of each update (the prior's
+                           fit included), where the records of the update's own episodes
+                           were taken (a record of the deterministic policy, eval_*, was
+                           taken one update earlier: `summaries.env_steps_axis`)
   summary.csv              per method: final performance (mean and t-interval; IQM and stratified
                            bootstrap interval), updates to 90%, failing seeds by cause
   comparisons.csv          probability of improvement (rliable) of each GP method over REINFORCE
@@ -504,8 +507,9 @@ def _write_results(out_dir: str, cfgs: dict, seeds: list[int], records: dict,
     num_updates = np.asarray([records[m]["mean_reward"].shape[1] for m in methods_run])
     env_steps = np.full((len(methods_run), updates), np.nan)
     for i, m in enumerate(methods_run):
-        env_steps[i, : num_updates[i]] = summaries.env_steps_axis(summaries.task_budget(cfgs[m]),
-                                                                  int(num_updates[i]))
+        # the steps by the end of each update: where its own episodes' records were taken
+        own = summaries.task_budget(cfgs[m])._replace(return_record="mean_return")
+        env_steps[i, : num_updates[i]] = summaries.env_steps_axis(own, int(num_updates[i]))
     checkpoints.atomic_savez(os.path.join(out_dir, "results.npz"), methods=np.asarray(methods_run),
                              seeds=np.asarray(seeds), num_updates=num_updates, env_steps=env_steps,
                              **arrays)
