@@ -37,7 +37,8 @@ import optax
 from gpguided_jax import kernels, methods, policy_gradient, sparse_gp
 
 LINE_SEARCH_HALVINGS = 10
-RECORDS = policy_gradient.RECORDS + ("critic_gain", "critic_kl", "critic_step_fraction")
+RECORDS = policy_gradient.RECORDS + ("critic_gain", "critic_kl", "critic_step_fraction",
+                                     "critic_error", "action_lengthscale")
 
 
 def state_factors(gp: sparse_gp.SparseGPState, kernel: kernels.KernelParams, x_state) -> jax.Array:
@@ -165,10 +166,30 @@ def _decision_states(prog, eps):
     return flat, x, weights
 
 
+def unseen_error(prog, gp, kernel, eps, returns):
+    """The critic's error on returns it has not seen: 1 - R^2 of mu_Q of `gp` (the GP before it
+    took the update's episodes in) against the returns-to-go of those episodes, over their steps
+    before an end: sum (Ret - mu)^2 / sum (Ret - mean Ret)^2. 0 is a perfect critic, 1 one no
+    better than the returns' mean."""
+    x = jax.vmap(jax.vmap(prog.task.features))(eps.states, eps.actions)
+    mu = jax.vmap(jax.vmap(lambda xi: sparse_gp.predict(gp, xi, kernel)[0]))(x)
+    w = jnp.ones_like(returns) if eps.alive is None else eps.alive.astype(returns.dtype)
+    n = jnp.maximum(jnp.sum(w), 1.0)
+    centre = jnp.sum(w * returns) / n
+    spread = jnp.sum(w * (returns - centre) ** 2)
+    return jnp.sum(w * (returns - mu) ** 2) / jnp.maximum(spread, jnp.finfo(returns.dtype).tiny)
+
+
 def critic_update(prog, cfg, state, batch):
-    """gp_pg's step (eq. 9), then `critic_steps` surrogate steps in the trust region."""
+    """gp_pg's step (eq. 9), then `critic_steps` surrogate steps in the trust region. Its records
+    add the surrogate's gain, the mean KL, the fraction of the move taken, the critic's error on
+    the update's episodes before the GP took them in (`unseen_error`) and the action
+    length-scale."""
     theta, opt_state, method_state, records = policy_gradient.q_gp_update(prog, cfg, state, batch)
     zero = jnp.zeros((), prog.dtype)
+    records = dict(records, critic_error=unseen_error(prog, state.gp, state.kernel,
+                                                      batch.episodes, batch.returns),
+                   action_lengthscale=state.kernel.lengthscales[-1].astype(prog.dtype))
     if prog.config.critic_steps == 0:
         return theta, opt_state, method_state, dict(
             records, critic_gain=zero, critic_kl=zero, critic_step_fraction=zero)

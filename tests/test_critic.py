@@ -188,6 +188,16 @@ def test_with_no_critic_steps_it_is_gp_pg_bit_for_bit(critic_registered):
     for f, v in rec.items():
         np.testing.assert_array_equal(np.asarray(v), np.asarray(rec0[f]), f)
     assert float(rec0["critic_step_fraction"]) == 0.0 and float(rec5["critic_step_fraction"]) > 0
+    # the critic's error on the update's episodes, by the GP before it took them in: 1 - R^2
+    _, eps, returns, _, _ = jax.jit(lambda s: T.roll_out_and_take_in(
+        progs[0], cfgs[0], s, jax.random.split(jax.random.PRNGKey(5), cfgs[0].episodes_per_update)))(
+        state)
+    x = np.asarray(jax.vmap(jax.vmap(progs[0].task.features))(eps.states, eps.actions)).reshape(-1, 4)
+    mu = np.array([float(sparse_gp.predict(state.gp, jnp.asarray(xi), state.kernel)[0]) for xi in x])
+    ret = np.asarray(returns).reshape(-1)
+    expected = np.sum((ret - mu) ** 2) / np.sum((ret - ret.mean()) ** 2)
+    np.testing.assert_allclose(float(rec0["critic_error"]), expected, rtol=1e-9)
+    assert float(rec0["action_lengthscale"]) == float(state.kernel.lengthscales[-1])
     assert not np.array_equal(np.asarray(theta.controller.weights), np.asarray(theta5.controller.weights))
 
 
