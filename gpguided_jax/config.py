@@ -523,6 +523,7 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
         "guided_variance": {"learning_rate": 0.003, "guided_variance_scale": 0.25},
         "guided_direction": {"learning_rate": 0.01, "discount_horizon": 30.0,
                              "candidate_scale": 0.25, "inverse_temperature": 100.0},
+        "gp_critic": {"critic_learning_rate": 0.01},
     },
     "inverted-pendulum": {
         "reinforce": {"learning_rate": 0.01, "discount_horizon": 2.0,
