@@ -379,6 +379,26 @@ def standard_table(task: str) -> str:
     return "\n".join(lines)
 
 
+def standard_critic_table(task: str) -> str:
+    """`experiments/standard_tasks.py report`: what would limit the critic, on one task."""
+    path = os.path.join("standard", task, "critic_diagnostics.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        d = json.load(f)
+    lines = ["| method | critic error 1 − R², first 10% of updates | last 10% | action length-scale, "
+             "median [min, max] over seeds | fraction of the move taken, last 10% | mean KL, last "
+             "10% |", "|---|---|---|---|---|---|"]
+    for r in d["rows"]:
+        lines.append(f"| {r['method']} | {r['error_first']:.2f} | {r['error_last']:.2f} | "
+                     f"{r['lengthscale_median']:.2f} [{r['lengthscale_min']:.2f}, "
+                     f"{r['lengthscale_max']:.2f}] | {r['fraction_last']:.3f} | {r['kl_last']:.3f} |")
+    lines.append("")
+    lines.append(f"Held-out seeds, {d['rows'][0]['seeds']} per method; medians over seeds and "
+                 "updates. Critic error: the GP's mean before it took an update's episodes in, "
+                 "against their returns-to-go (1 is no better than their mean). The action "
+                 "length-scale is in the task's action units. " + _source(path))
+    return "\n".join(lines)
+
+
 def standard_tuning_table(task: str) -> str:
     """`experiments/standard_tasks.py tune`: every configuration tried on the tuning seeds."""
     path = os.path.join("standard", task, "tuning.json")
@@ -590,6 +610,8 @@ TABLES = {
     "exploration_mountaincar": lambda: exploration_standard_table("mountaincar-continuous"),
     "exploration_pendulum_v1": lambda: exploration_standard_table("pendulum-v1"),
     **{f"standard_{t.replace('-', '_')}": (lambda t=t: standard_table(t)) for t in STANDARD_TASKS},
+    **{f"standard_critic_{t.replace('-', '_')}": (lambda t=t: standard_critic_table(t))
+       for t in ("pendulum-v1", "mountaincar-continuous")},
     **{f"standard_tuning_{t.replace('-', '_')}": (lambda t=t: standard_tuning_table(t))
        for t in STANDARD_TASKS},
 }
