@@ -118,7 +118,7 @@ def two_device_run(tmp_path_factory):
 # the other finishes a long one (xdist hands out tests in collection order after the groups).
 _LONG_MODULES = ("test_distributed.py", "test_tasks.py", "test_notebooks.py", "test_bench.py",
                  "test_analysis.py", "test_train.py", "test_cli.py", "test_baselines.py",
-                 "test_sweep.py", "test_sparse_gp.py")
+                 "test_sweep.py", "test_critic.py", "test_methods.py", "test_sparse_gp.py")
 
 
 _UNGROUPED = []  # xdist_group tests that this worker's xdist failed to group

@@ -17,6 +17,8 @@ from gpguided_jax import reproduce as R
 from gpguided_jax import train as T
 
 KEYS = jax.random.split(jax.random.PRNGKey(0), 2)
+# the paper's three GP methods: the family of one program (`train.program_family`)
+PAPER_GP = T.program_family(C.preset("tiny", method="gp_pg"))
 
 
 TINY_TRACES: dict = {}  # program ("reinforce" or "gp_methods") -> how often it was traced
@@ -59,7 +61,7 @@ def tiny_runs():
 
     runs = {"reinforce": (counted("reinforce", reinforce), (KEYS,))}
     gp_program = counted("gp_methods", _tiny_gp_run)
-    for m in T.GP_METHODS:
+    for m in PAPER_GP:
         # the method's index and config, one row per seed, as `reproduce` passes them
         runs[m] = (gp_program, (KEYS, *R.gp_method_args(C.preset("tiny", method=m), len(KEYS), mesh)))
     return {m: (fn, args, fn(*args)) for m, (fn, args) in runs.items()}
@@ -219,7 +221,7 @@ def test_gp_methods_improve_on_a_small_problem(method, improve_priors, improve_p
     test_gp_methods_program_runs_each_method_as_its_own_program).
     """
     cfg = _improve_config(method)
-    _, rec = improve_program(IMPROVE_SEEDS, improve_priors, np.int32(T.GP_METHODS.index(method)),
+    _, rec = improve_program(IMPROVE_SEEDS, improve_priors, np.int32(PAPER_GP.index(method)),
                              T.gp_methods_key(cfg))
     r = np.asarray(rec.mean_reward)
     assert r[:, -20:].mean() > r[:, :20].mean() + 0.01, (r[:, :20].mean(1), r[:, -20:].mean(1))
@@ -452,7 +454,7 @@ def test_gp_methods_program_runs_each_method_as_its_own_program():
     per_seed = lambda x: np.broadcast_to(np.asarray(x), (2,) + np.shape(x))  # noqa: E731
     rates = {"gp_pg": 0.02, "guided_variance": 0.01, "guided_direction": 0.005}
     runs = {}
-    for i, method in enumerate(T.GP_METHODS):
+    for i, method in enumerate(PAPER_GP):
         cfg = C.preset("tiny", method=method, learning_rate=rates[method])
         train = T.make_train(cfg)
         state = jax.jit(jax.vmap(functools.partial(train.init, cfg=cfg)))(KEYS, prior=priors)
@@ -496,7 +498,7 @@ def test_a_method_alone_equals_it_among_the_others(tmp_path):
     kw = dict(REPRODUCE_KW, progress=lambda m: None)
     R._SHARED_PROGRAMS.clear()
     R._FIT_PROGRAMS.clear()
-    R.reproduce(out_dir=str(tmp_path / "all"), methods=list(T.GP_METHODS), **kw)
+    R.reproduce(out_dir=str(tmp_path / "all"), methods=list(PAPER_GP), **kw)
     assert len(R._SHARED_PROGRAMS) == 1  # one program, one chunk length
     (program,) = R._SHARED_PROGRAMS.values()
     assert program._cache_size() == 1  # compiled once, for the three methods
@@ -504,7 +506,7 @@ def test_a_method_alone_equals_it_among_the_others(tmp_path):
     # the second run (another directory: no kernels_<method>.npz) fits with the first run's program
     assert len(R._FIT_PROGRAMS) == 1 and next(iter(R._FIT_PROGRAMS.values()))._cache_size() == 1
     every, alone = (np.load(tmp_path / d / "results.npz") for d in ("all", "alone"))
-    assert list(every["methods"]) == list(T.GP_METHODS)
+    assert list(every["methods"]) == list(PAPER_GP)
     for k in T.RECORD_FIELDS:
         np.testing.assert_array_equal(alone[k][0], every[k][1], err_msg=k)
     with pytest.raises(ValueError, match="gp_program"):
