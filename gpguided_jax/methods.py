@@ -37,7 +37,7 @@ from typing import Any, Callable, NamedTuple
 
 PRIORS = ("none", "q_gp")
 
-# The records every method has (`train.SharedRecord`): what the shared steps 1-2 and the
+# The records every method has (`train.record_type`): what the shared steps 1-2 and the
 # evaluation of the deterministic controller give, whatever the improvement step.
 SHARED_RECORDS = (
     "mean_reward", "exploration_std", "num_basis_vectors", "fresh_bv_share", "gp_guard",
