@@ -304,8 +304,10 @@ def run_method(preset: str, method: str, seeds: Sequence[int], run_dir: str, ove
         raise RuntimeError(f"{method} did not finish in {run_dir}")
     with np.load(os.path.join(run_dir, "results.npz")) as f:
         records = {k: f[k][0] for k in f.files if f[k].ndim == 3}
-        steps = f["env_steps"][0].astype(np.int64)  # a finished run's axis holds no NaN
-    return MethodRun(records, steps, float(out["wall_s"][method]))
+    # the axis of the run's return record (results.npz's env_steps is that of the updates' own
+    # episodes, one update later than the deterministic policy's evaluations)
+    cfg = config_lib.preset(preset, method=method, dtype=dtype, **overrides)
+    return MethodRun(records, env_steps(cfg), float(out["wall_s"][method]))
 
 
 def _as_json(obj):

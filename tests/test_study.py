@@ -182,17 +182,22 @@ def test_run_parts_resumes_and_runs_again_what_changed(tmp_path):
 
 
 def test_run_method_reads_its_run_and_reproduces_wall_time(tmp_path, monkeypatch):
+    overrides = {"learning_rate": 0.1, "num_updates": 3}
+
     def fake_reproduce(preset, seeds, methods, out_dir, **kw):
-        assert methods == ["gp_pg"] and kw["overrides"] == {"lr": 1} and kw["dtype"] == "float32"
+        assert methods == ["gp_pg"] and kw["overrides"] == overrides and kw["dtype"] == "float32"
         np.savez(f"{out_dir}/results.npz", methods=np.asarray(methods),
                  eval_return=np.ones((1, len(seeds), 3)), env_steps=np.array([[4.0, 6.0, 8.0]]))
         return {"complete": True, "wall_s": {"gp_pg": 12.5}}
 
     monkeypatch.setattr(study.reproduce, "reproduce", fake_reproduce)
-    run = study.run_method("tiny", "gp_pg", (1, 2), str(tmp_path), {"lr": 1}, dtype="float32",
+    run = study.run_method("tiny", "gp_pg", (1, 2), str(tmp_path), overrides, dtype="float32",
                            progress=lambda m: None)
     assert run.wall_s == 12.5 and run.records["eval_return"].shape == (2, 3)
-    assert run.env_steps.dtype == np.int64 and run.env_steps.tolist() == [4, 6, 8]
+    # the axis of the run's return record, by hand: the tiny preset's fit of 5 episodes of 20
+    # steps, then 2 episodes of 20 per update; it evaluates no policy apart, so its return
+    # record is the update's own episodes', taken after u + 1 updates
+    assert run.env_steps.tolist() == [140, 180, 220]
 
 
 def test_record_result_adds_one_name(tmp_path):
