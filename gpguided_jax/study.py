@@ -24,15 +24,15 @@ Here:
   (`read_json`, `write_json`).
 
 Environment steps. Every curve of a method lies on one axis, `env_steps`
-(`summaries.env_steps_axis`, the axis of `summaries.steps_to_threshold` and of results.npz's
-`env_steps`): a record sits at the experience spent when it was measured, the hyperparameter
-fit's episodes included. Record u of the deterministic policy's evaluation (eval_return,
-eval_success_rate, eval_reward) evaluates the policy before update u's step, after u updates'
-episodes, so record 0 is the policy before any learning, at the fit's steps; a record of an
-update's own episodes (mean_return, success_rate) is taken after u + 1 updates' episodes. brax's
-baselines count the same way (their first evaluation, of the initial policy, at 0 steps). Placing
-the evaluation at the end of its update instead would credit each policy with one update of
-experience it had not yet used.
+(`summaries.env_steps_axis`, the axis of `summaries.steps_to_threshold`; results.npz's
+`env_steps` is that of the updates' own episodes): a record sits at the experience spent when
+it was measured, the hyperparameter fit's episodes included. Record u of the deterministic
+policy's evaluation (eval_return, eval_success_rate, eval_reward) evaluates the policy before
+update u's step, after u updates' episodes, so record 0 is the policy before any learning, at
+the fit's steps; a record of an update's own episodes (mean_return, success_rate) is taken after
+u + 1 updates' episodes. brax's baselines count the same way (their first evaluation, of the
+initial policy, at 0 steps). Placing the evaluation at the end of its update instead would
+credit each policy with one update of experience it had not yet used.
 """
 
 from __future__ import annotations
