@@ -611,7 +611,7 @@ TABLES = {
     "exploration_pendulum_v1": lambda: exploration_standard_table("pendulum-v1"),
     **{f"standard_{t.replace('-', '_')}": (lambda t=t: standard_table(t)) for t in STANDARD_TASKS},
     **{f"standard_critic_{t.replace('-', '_')}": (lambda t=t: standard_critic_table(t))
-       for t in ("pendulum-v1", "mountaincar-continuous")},
+       for t in ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum")},
     **{f"standard_tuning_{t.replace('-', '_')}": (lambda t=t: standard_tuning_table(t))
        for t in STANDARD_TASKS},
 }

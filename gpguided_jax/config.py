@@ -532,6 +532,7 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
         "guided_variance": {"learning_rate": 0.003, "guided_variance_scale": 2.0},
         "guided_direction": {"learning_rate": 0.01, "discount_horizon": 2.0,
                              "inverse_temperature": 1.0},
+        "gp_critic": {"critic_learning_rate": 0.003, "critic_steps": 10},
     },
     "inverted-double-pendulum": {
         "reinforce": {"learning_rate": 0.01, "init_log_std": math.log(0.25)},
