@@ -170,7 +170,7 @@ def test_with_no_critic_steps_it_is_gp_pg_bit_for_bit(critic_registered):
     """On the same update's batch (steps 1-2 are shared), gp_critic's step with K = 0 is gp_pg's
     bit for bit; with K > 0 it moves further."""
     prior = T.GPPrior(kernels.make_kernel_params(np.ones(4), 0.5, 0.05), jnp.asarray(-1.0))
-    cfgs = {k: C.preset("tiny", method=critic_registered, critic_steps=k) for k in (0, 5)}
+    cfgs = {k: C.preset("tiny", method=critic_registered, critic_steps=k) for k in (0, 2)}
     progs = {k: T.make_program(c) for k, c in cfgs.items()}
     state = T.initial_state(progs[0], jax.random.PRNGKey(4), cfgs[0], prior)
 
@@ -180,7 +180,7 @@ def test_with_no_critic_steps_it_is_gp_pg_bit_for_bit(critic_registered):
         gp, eps, returns, _, _ = T.roll_out_and_take_in(progs[0], cfgs[0], state, keys)
         batch = T.Batch(eps, returns, gp)
         return (policy_gradient.q_gp_update(progs[0], cfgs[0], state, batch),
-                *(critic.critic_update(progs[k], cfgs[k], state, batch) for k in (0, 5)))
+                *(critic.critic_update(progs[k], cfgs[k], state, batch) for k in (0, 2)))
 
     (theta, opt, _, rec), (theta0, opt0, _, rec0), (theta5, _, _, rec5) = updates(state)
     for a, b in zip(jax.tree_util.tree_leaves((theta, opt)), jax.tree_util.tree_leaves((theta0, opt0))):
@@ -234,12 +234,12 @@ def _bandit_task():
 
 def test_on_a_bandit_it_reaches_the_optimum_in_fewer_updates_than_gp_pg(critic_registered):
     """The deterministic action c = tanh(b) reaches within 0.05 of A* = 0.6; gp_critic in fewer
-    updates than gp_pg at the same learning rate, on each of three seeds."""
+    updates than gp_pg at the same learning rate, on each of two seeds."""
     tasks.register(_bandit_task())
     common = dict(env="test:bandit", episode_length=4, episodes_per_update=4, num_updates=20,
                   discount=1e-3, eval_episodes=1, optimizer="adam", learning_rate=0.01,
                   init_log_std=np.log(0.5), hyperfit_samples=64, gp_capacity=16)
-    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
     # a fixed prior for both (the kernel's action length-scale about the reward's curvature)
     prior = T.GPPrior(kernels.make_kernel_params([1.0, 0.5], 0.5, 0.01), jnp.asarray(-0.5))
     first = {}
