@@ -330,9 +330,6 @@ def _add_demo(sub) -> None:
 
 
 def _add_reproduce(sub) -> None:
-    from gpguided_jax.config import METHODS, PAPER_METHODS, PRESETS
-    from gpguided_jax.exploration import NOISES
-
     rep = sub.add_parser(
         "reproduce",
         formatter_class=_DefaultsHelp,
@@ -342,6 +339,19 @@ def _add_reproduce(sub) -> None:
         "config.json, summary.csv and the two Fig. 5 panels to --out. An interrupted run resumes "
         "from the checkpoints in --out.",
     )
+    _add_task_options(rep)
+    _add_exploration_options(rep)
+    _add_run_options(rep)
+    _add_device_options(rep, "seeds")
+    _add_compile_cache(rep)
+    _add_process_options(rep)
+    rep.set_defaults(func=_cmd_reproduce)
+
+
+def _add_task_options(rep) -> None:
+    """reproduce: the preset, the environment and the discount."""
+    from gpguided_jax.config import PRESETS
+
     rep.add_argument("--preset", default="paper", choices=sorted(PRESETS),
                      help="budgets and settings (config.PRESETS); the standard tasks' presets "
                      "(pendulum-v1, mountaincar-continuous, inverted-pendulum, "
@@ -353,6 +363,12 @@ def _add_reproduce(sub) -> None:
     rep.add_argument("--horizon", type=float, default=None, metavar="SECONDS",
                      help="the discount as a horizon in seconds, gamma = exp(-dt / horizon) "
                      "(replaces the preset's discount)")
+
+
+def _add_exploration_options(rep) -> None:
+    """reproduce: the exploration scheme and its settings."""
+    from gpguided_jax.exploration import NOISES
+
     rep.add_argument("--exploration", default=None, choices=list(NOISES),
                      help="exploration noise of the Gaussian policies (default: the preset's, "
                      "white for the paper): white (independent at each decision), ou "
@@ -378,7 +394,11 @@ def _add_reproduce(sub) -> None:
                      help="on a task whose episodes end early: mask the slots after the end "
                      "(default) or restart the environment in them, so that every slot is an "
                      "environment step")
-    from gpguided_jax.config import FIELD_GROUPS
+
+
+def _add_run_options(rep) -> None:
+    """reproduce: other config fields, the seeds, the methods and the output."""
+    from gpguided_jax.config import FIELD_GROUPS, METHODS, PAPER_METHODS
 
     rep.add_argument("--set", nargs="+", default=None, metavar="FIELD=VALUE",
                      help="any other TrainConfig field (or discount_horizon, in seconds) for "
@@ -399,8 +419,10 @@ def _add_reproduce(sub) -> None:
                      help="updates per compiled chunk (a checkpoint and a progress line after each)")
     rep.add_argument("--keep-checkpoints", action="store_true",
                      help="keep the checkpoints once the results are written (they are deleted)")
-    _add_device_options(rep, "seeds")
-    _add_compile_cache(rep)
+
+
+def _add_process_options(rep) -> None:
+    """reproduce: several processes, and how the GP methods are compiled."""
     rep.add_argument("--coordinator", default=None, metavar="HOST:PORT",
                      help="several processes (jax.distributed): process 0's address, the same "
                      "for every process")
@@ -413,7 +435,6 @@ def _add_reproduce(sub) -> None:
                      "method an argument (compiled once); per-method: one program each (the "
                      "records agree to rounding)")
     rep.add_argument("--max-chunks", type=int, default=None, help=argparse.SUPPRESS)
-    rep.set_defaults(func=_cmd_reproduce)
 
 
 def _add_baseline(sub) -> None:

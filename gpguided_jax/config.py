@@ -281,24 +281,28 @@ def _fail(field: str, message: str):
     raise ValueError(f"TrainConfig.{field}: {message}")
 
 
-def validate(cfg: TrainConfig) -> TrainConfig:
-    """Checks every field; raises `ValueError` naming the first bad one. Returns cfg."""
+def _method_of(cfg: TrainConfig) -> methods.Method:
     try:
-        method = methods.get(cfg.method)
+        return methods.get(cfg.method)
     except ValueError as e:
         _fail("method", str(e))
-    if cfg.controller not in CONTROLLERS:
-        _fail("controller", f"unknown controller {cfg.controller!r}; choose from {CONTROLLERS}")
-    if cfg.age_fn not in AGE_FUNCTIONS:
-        _fail("age_fn", f"unknown age function {cfg.age_fn!r}; choose from {AGE_FUNCTIONS}")
-    if cfg.optimizer not in OPTIMIZERS:
-        _fail("optimizer", f"unknown optimizer {cfg.optimizer!r}; choose from {OPTIMIZERS}")
-    if cfg.dtype not in DTYPES:
-        _fail("dtype", f"unknown dtype {cfg.dtype!r}; choose from {DTYPES}")
+
+
+def _integer(v) -> bool:
+    return not isinstance(v, bool) and isinstance(v, (int, np.integer))
+
+
+def _check_choices_and_sizes(cfg: TrainConfig) -> None:
+    """The static fields: the named choices, the sizes and the durations."""
+    for f, choices in (("controller", CONTROLLERS), ("age_fn", AGE_FUNCTIONS),
+                       ("optimizer", OPTIMIZERS), ("dtype", DTYPES)):
+        if getattr(cfg, f) not in choices:
+            what = {"age_fn": "age function"}.get(f, f)
+            _fail(f, f"unknown {what} {getattr(cfg, f)!r}; choose from {choices}")
     for f in ("num_updates", "episodes_per_update", "episode_length", "gp_capacity",
               "hyperfit_samples", "hyperfit_steps", "hyperfit_subset", "num_candidates", "gp_stride"):
         v = getattr(cfg, f)
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+        if not _integer(v) or v < 1:
             _fail(f, f"must be a positive integer, got {v!r}")
     if cfg.hyperfit_optimizer not in ("adam", "lbfgs"):
         _fail("hyperfit_optimizer", f"must be 'adam' or 'lbfgs', got {cfg.hyperfit_optimizer!r}")
@@ -306,12 +310,16 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         _fail("num_candidates", f"the Gibbs policy needs at least 2 candidates, got {cfg.num_candidates}")
     for f in ("eval_episodes", "critic_steps"):
         v = getattr(cfg, f)
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+        if not _integer(v) or v < 0:
             _fail(f, f"must be an integer >= 0, got {v!r}")
     if not isinstance(cfg.success_hold_time, (int, float)) or not cfg.success_hold_time > 0:
         _fail("success_hold_time", f"must be > 0 seconds, got {cfg.success_hold_time!r}")
     if cfg.episode_end not in EPISODE_ENDS:
         _fail("episode_end", f"unknown episode end {cfg.episode_end!r}; choose from {EPISODE_ENDS}")
+
+
+def _check_exploration(cfg: TrainConfig, method: methods.Method) -> None:
+    """The scheme, that the method accepts it (`Method.explorations`), and its durations."""
     if cfg.exploration not in exploration.NOISES:
         _fail("exploration", f"unknown exploration noise {cfg.exploration!r}; choose from "
               f"{exploration.NOISES}")
@@ -331,6 +339,11 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
                 or not ok(v):
             _fail(f, f"must be {what}, got {v!r}")
+
+
+def _check_traced(cfg: TrainConfig) -> None:
+    """The traced fields that are values (a tracer passes): finite, their signs, the discount in
+    (0, 1], min_std <= max_std."""
     if not isinstance(cfg.use_baseline, bool):
         _fail("use_baseline", f"must be a bool, got {cfg.use_baseline!r}")
     for f in TRACED_FIELDS:
@@ -354,6 +367,9 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     if not any(isinstance(getattr(cfg, f), jax.core.Tracer) for f in ("min_std", "max_std")):
         if np.any(np.asarray(cfg.min_std, float) > np.asarray(cfg.max_std, float)):
             _fail("min_std", f"must be <= max_std, got {cfg.min_std!r} > {cfg.max_std!r}")
+
+
+def _check_environment(cfg: TrainConfig) -> None:
     if not isinstance(cfg.env, str):
         _fail("env", f"must be an environment name, got {cfg.env!r}")
     try:
@@ -362,6 +378,15 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         _fail("env", str(e))
     if not isinstance(cfg.pendulum, pendulum.PendulumParams):
         _fail("pendulum", f"must be PendulumParams (pendulum.make_params), got {type(cfg.pendulum)}")
+
+
+def validate(cfg: TrainConfig) -> TrainConfig:
+    """Checks every field; raises `ValueError` naming the first bad one. Returns cfg."""
+    method = _method_of(cfg)
+    _check_choices_and_sizes(cfg)
+    _check_exploration(cfg, method)
+    _check_traced(cfg)
+    _check_environment(cfg)
     if method.check is not None:
         method.check(cfg)
     return cfg
