@@ -157,7 +157,7 @@ class Batch(NamedTuple):
 def _record_type(fields: tuple[str, ...]):
     if set(fields) == set(UpdateRecord._fields):
         return UpdateRecord
-    return NamedTuple(f"Record_{abs(hash(fields)):x}", [(f, jax.Array) for f in fields])
+    return NamedTuple("MethodRecord", [(f, jax.Array) for f in fields])
 
 
 def record_type(method: methods.Method):
