@@ -1,0 +1,209 @@
+"""gp_model (the GP as a model of the task, `gpguided_jax.model_based`) on the standard tasks,
+beside brax's SAC and PPO and the paper's methods, by the protocol of `gpguided_jax.study`.
+
+The budget is the aim's: `BUDGETS` environment steps of learning episodes (one episode an update),
+far below the standard tasks' budgets, so the comparison is by the environment steps (and the wall
+time) to the threshold: the baselines' and the paper's methods' curves are the standard-tasks
+study's held-out runs (docs/results/standard/<task>/heldout), on the same held-out seeds.
+
+Stages, per task; each writes under --out (default docs/results/model/<task>):
+
+``tune``    Tuning seeds (100, 101; never reported): coordinate search over `GRIDS` (written
+            before any run), from `BASE`'s settings. The score is the mean return of the
+            deterministic policy over the evaluations in the second half of the budget (mean over
+            seeds): it rewards reaching the threshold early and staying there. Writes tuning.json.
+``heldout`` Held-out seeds (1000-1009): gp_model with the tuned settings under each of the
+            model's exploration choices (`model_based.EXPLORATIONS`; --only: which), each alone
+            through `gpguided reproduce`'s driver. Writes heldout/<choice>.npz and .json (resumes
+            as the standard tasks' study does).
+``report``  heldout_table.json (seeds reaching the threshold, environment steps and wall time to
+            it, final return, and each choice's probability of improvement over the mean model)
+            and the figure (return against environment steps, log axis, beside SAC, PPO and the
+            paper's best method), from which `docs_tables.py` renders the table.
+
+Usage:
+  python experiments/model_study.py tune --task pendulum-v1
+  python experiments/model_study.py heldout --task pendulum-v1
+  python experiments/model_study.py report --task pendulum-v1
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+import gpguided_jax  # noqa: E402
+from gpguided_jax import model_based, runtime, stats, study, tasks  # noqa: E402
+from gpguided_jax import config as config_lib  # noqa: E402
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+METHOD = "gp_model"
+TASKS = ("pendulum-v1",)
+# learning steps of a run: the aim's budget (2,000 on Pendulum-v1), one episode an update, and one
+# more update whose evaluation is that of the policy after the whole budget
+BUDGETS = {"pendulum-v1": 2000}
+# the settings every run starts from: one episode an update; the first episode's noise is half
+# the torque range, the floor after it (`model_based` notes)
+BASE = {"pendulum-v1": dict(episodes_per_update=1, init_log_std=0.0, min_std=0.05,
+                            eval_episodes=10)}
+# (parameter, values) per stage, applied over the best so far (its default between the values):
+# the exploration choice, the simulated horizon (s; default 4), the Adam step (0.01), the
+# optimiser steps per update (100) and the inducing inputs (200)
+GRIDS = {"pendulum-v1": [("model_exploration", list(model_based.EXPLORATIONS)),
+                         ("model_horizon", [2.0, 8.0]),
+                         ("model_learning_rate", [0.003, 0.03]),
+                         ("model_steps", [50, 200]),
+                         ("model_inducing", [100, 400])]}
+STANDARD = os.path.join(ROOT, "docs", "results", "standard")
+BASELINES = ("sac", "ppo")
+PAPER = ("reinforce", "gp_pg", "guided_variance", "guided_direction", "gp_critic")
+
+
+def overrides(task: str, settings: dict) -> dict:
+    episodes = BASE[task]["episodes_per_update"]
+    length = config_lib.PRESETS[task]["episode_length"]
+    updates = BUDGETS[task] // (episodes * length) + 1
+    return {**BASE[task], "num_updates": updates, **settings}
+
+
+def score(records: dict) -> dict:
+    ret = np.asarray(records["eval_return"], float)  # (seeds, updates)
+    half = ret.shape[1] // 2
+    return {"score": float(ret[:, half:].mean()), "final": float(ret[:, -1].mean())}
+
+
+def tune(task: str, out: str) -> None:
+    path = os.path.join(out, "tuning.json")
+
+    def evaluate(configs):
+        return study.sweep_stage([overrides(task, c) for c in configs], score, method=METHOD,
+                                 preset=task, seeds=study.TUNING_SEEDS, progress=study.log)
+
+    result = study.coordinate_search(study.stages(GRIDS[task]), evaluate, log=study.log)
+    study.write_json(path, {"task": task, "seeds": list(study.TUNING_SEEDS),
+                            "grid": GRIDS[task], "base": BASE[task],
+                            "budget": BUDGETS[task], **result})
+    study.log(f"wrote {path}: {result['chosen']}")
+
+
+def heldout(task: str, out: str, seeds, only) -> None:
+    chosen = study.read_json(os.path.join(out, "tuning.json"), {}).get("chosen", {})
+    for choice in only:
+        settings = {**chosen, "model_exploration": choice}
+        meta = {"seeds": list(seeds), "settings": settings}
+        path = os.path.join(out, "heldout", choice)
+        if study.finished(path + ".json", **meta):
+            study.log(f"[{task} {choice}] done with these seeds and settings: {path}.json")
+            continue
+        run = study.run_method(task, METHOD, seeds, os.path.join(out, "runs", choice),
+                               overrides(task, settings), chunk_size=100)
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        np.savez(path + ".npz", steps=run.env_steps, **{"return": run.records["eval_return"]},
+                 model_error=run.records["model_error"])
+        study.write_json(path + ".json", {**meta, "wall_s": run.wall_s})
+
+
+def _row(name, steps, ret, threshold, wall_s, seeds):
+    reach = study.steps_to(steps, ret, threshold, never=np.nan)
+    ok = np.isfinite(reach)
+    per_seed = wall_s / ret.shape[0]
+    # wall time to the threshold: the run's seconds per seed, in proportion to its steps
+    wall_to = per_seed * reach / steps[-1]
+    return dict(method=name, seeds=int(ret.shape[0]), seeds_reaching=int(ok.sum()),
+                steps_to_threshold=[None if not f else int(v) for v, f in zip(reach, ok)],
+                steps_to_threshold_median=float(np.median(reach[ok])) if ok.any() else None,
+                wall_to_threshold_median=float(np.median(wall_to[ok])) if ok.any() else None,
+                final_return_mean=float(ret[:, -1].mean()), env_steps=int(steps[-1]),
+                wall_s_per_seed=float(per_seed))
+
+
+def report(task: str, out: str) -> None:
+    threshold = tasks.THRESHOLDS[config_lib.PRESETS[task]["env"]]
+    rows, curves = [], {}
+    for choice in model_based.EXPLORATIONS:
+        p = os.path.join(out, "heldout", choice)
+        if os.path.exists(p + ".npz"):
+            with np.load(p + ".npz") as f:
+                curves[f"gp_model ({choice})"] = (f["steps"], np.asarray(f["return"], float))
+            meta = study.read_json(p + ".json")
+            rows.append(_row(f"gp_model ({choice})", *curves[f"gp_model ({choice})"], threshold,
+                             meta["wall_s"], meta["seeds"]))
+    seeds = meta["seeds"]
+    others = {}
+    for name in (*BASELINES, *PAPER):
+        p = os.path.join(STANDARD, task, "heldout", name)
+        if not os.path.exists(p + ".npz"):
+            continue
+        with np.load(p + ".npz") as f:
+            steps, ret = f["steps"], np.asarray(f["return"], float)
+        meta = study.read_json(p + ".json")
+        if meta["seeds"] != seeds:
+            continue
+        if name in BASELINES:  # brax evaluates the initial policy first, at 0 steps
+            steps, ret = steps[1:], ret[:, 1:]
+        others[name] = (steps, ret, meta["wall_s"])
+    paper_best = max((n for n in PAPER if n in others),
+                     key=lambda n: study.final(others[n][1]).mean(), default=None)
+    for name in (*BASELINES, paper_best):
+        if name is not None and name in others:
+            rows.append(_row(name, *others[name], threshold, seeds))
+            curves[name] = others[name][:2]
+    # each exploration choice against the mean model: P(choice > mean) of the final returns
+    mean_key = "gp_model (mean)"
+    if mean_key in curves:
+        for row in rows:
+            name = row["method"]
+            if name.startswith("gp_model (") and name != mean_key:
+                row["p_improvement_over_mean"] = stats.probability_of_improvement(
+                    curves[name][1][:, -1], curves[mean_key][1][:, -1])
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name, (steps, ret) in curves.items():
+        study.plot_band(ax, steps, ret, label=name, ls="-" if name.startswith("gp_model") else ":")
+    ax.axhline(threshold, color="k", ls="--", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_xlabel("environment steps (log)")
+    ax.set_ylabel("return of the deterministic policy")
+    ax.set_title(f"{task}: {len(seeds)} held-out seeds (mean, 95% t-band)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    figure = os.path.join(ROOT, "docs", "figures", f"model_{task}.png")
+    fig.savefig(figure, dpi=110)
+    plt.close(fig)
+    study.write_json(os.path.join(out, "heldout_table.json"), {
+        "task": task, "threshold": threshold, "seeds": seeds, "budget": BUDGETS[task],
+        "paper_best": paper_best, "rows": rows})
+    study.log(f"wrote {figure} and {out}/heldout_table.json")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("stage", choices=("tune", "heldout", "report"))
+    p.add_argument("--task", choices=TASKS, default="pendulum-v1")
+    p.add_argument("--out", default=None)
+    p.add_argument("--only", nargs="+", default=list(model_based.EXPLORATIONS),
+                   choices=model_based.EXPLORATIONS)
+    args = p.parse_args(argv)
+    runtime.single_threaded_lapack()
+    runtime.set_compile_cache(runtime.DEFAULT_COMPILE_CACHE)
+    gpguided_jax.enable_x64()
+    out = args.out or os.path.join(ROOT, "docs", "results", "model", args.task)
+    os.makedirs(out, exist_ok=True)
+    if args.stage == "tune":
+        tune(args.task, out)
+    elif args.stage == "heldout":
+        heldout(args.task, out, study.HELDOUT_SEEDS, args.only)
+    else:
+        report(args.task, out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
