@@ -55,12 +55,13 @@ BASE = {"pendulum-v1": dict(episodes_per_update=1, init_log_std=0.0, min_std=0.0
                             eval_episodes=10)}
 # (parameter, values) per stage, applied over the best so far (its default between the values):
 # the exploration choice, the simulated horizon (s; default 4), the Adam step (0.01), the
-# optimiser steps per update (100) and the inducing inputs (200)
+# optimiser steps per update (100), the inducing inputs (200) and L-BFGS in place of Adam
 GRIDS = {"pendulum-v1": [("model_exploration", list(model_based.EXPLORATIONS)),
                          ("model_horizon", [2.0, 8.0]),
                          ("model_learning_rate", [0.003, 0.03]),
                          ("model_steps", [50, 200]),
-                         ("model_inducing", [100, 400])]}
+                         ("model_inducing", [100, 400]),
+                         ("model_optimizer", ["lbfgs"])]}
 STANDARD = os.path.join(ROOT, "docs", "results", "standard")
 BASELINES = ("sac", "ppo")
 PAPER = ("reinforce", "gp_pg", "guided_variance", "guided_direction", "gp_critic")
