@@ -57,6 +57,15 @@ STATIC_FIELDS = (
     "optimism",
     "episode_end",
     "critic_steps",
+    "model_capacity",
+    "model_inducing",
+    "model_fit_subset",
+    "model_fit_steps",
+    "model_particles",
+    "model_steps",
+    "model_horizon",
+    "model_exploration",
+    "model_optimizer",
 )
 
 
@@ -127,6 +136,12 @@ class TrainConfig:
         Q_GP(s, a_j). 0 (default): the paper. The other methods ignore it.
       critic_steps: gp_critic's K, the surrogate steps against Q_GP per update (`critic`; 0: gp_pg
         exactly). The other methods ignore it.
+      model_capacity, model_inducing, model_fit_subset, model_fit_steps, model_particles,
+        model_steps, model_horizon, model_exploration, model_optimizer: gp_model's transitions
+        kept, inducing inputs, the refit's subset and Adam steps, simulated particles, optimiser
+        steps per update, the simulated roll-outs' horizon (seconds), how the model's uncertainty
+        enters them ('mean', 'sample', 'thompson', 'optimistic') and the controller's optimiser
+        ('adam', 'lbfgs'; `model_based`).
 
     Traced fields (leaves; sweepable by vmap):
       learning_rate: eta of the ascent step.
@@ -154,6 +169,8 @@ class TrainConfig:
       critic_learning_rate: gp_critic's Adam step size on the surrogate.
       trust_region: gp_critic's delta, the bound on the mean KL (nats) between the policy that
         gathered an update's episodes and the improved one, over the update's decision states.
+      model_learning_rate: gp_model's Adam step size on the simulated return.
+      model_beta: gp_model's optimism, the confidence multiple of the hallucinated control.
     """
 
     # static
@@ -184,6 +201,15 @@ class TrainConfig:
     optimism: float = 0.0
     episode_end: str = "mask"
     critic_steps: int = 50
+    model_capacity: int = 4000
+    model_inducing: int = 200
+    model_fit_subset: int = 300
+    model_fit_steps: int = 50
+    model_particles: int = 16
+    model_steps: int = 100
+    model_horizon: float = 4.0
+    model_exploration: str = "mean"
+    model_optimizer: str = "adam"
     # traced
     learning_rate: Any = 2e-4
     max_grad_norm: Any = 300.0
@@ -204,6 +230,8 @@ class TrainConfig:
     pendulum: Any = None
     critic_learning_rate: Any = 0.01
     trust_region: Any = 0.05
+    model_learning_rate: Any = 0.01
+    model_beta: Any = 1.0
 
     def replace(self, **changes) -> TrainConfig:
         return dataclasses.replace(self, **changes)
@@ -252,6 +280,9 @@ FIELD_GROUPS: dict[str, tuple[str, ...]] = {
     "estimator": ("discount", "use_baseline"),
     "optimiser": ("optimizer", "learning_rate", "max_grad_norm"),
     "critic": ("critic_steps", "critic_learning_rate", "trust_region"),
+    "model": ("model_capacity", "model_inducing", "model_fit_subset", "model_fit_steps",
+              "model_particles", "model_steps", "model_horizon", "model_exploration",
+              "model_optimizer", "model_learning_rate", "model_beta"),
 }
 
 
@@ -273,8 +304,8 @@ jax.tree_util.register_dataclass(
 _POSITIVE = ("learning_rate", "max_grad_norm", "success_tolerance", "min_std", "max_std",
              "age_scale", "guided_variance_scale",
              "guided_variance_floor", "inverse_temperature", "energy_width", "candidate_scale",
-             "candidate_floor", "critic_learning_rate", "trust_region")
-_NON_NEGATIVE = ("age_penalty", "novelty_tol")
+             "candidate_floor", "critic_learning_rate", "trust_region", "model_learning_rate")
+_NON_NEGATIVE = ("age_penalty", "novelty_tol", "model_beta")
 
 
 def _fail(field: str, message: str):

@@ -26,7 +26,8 @@ and its own records. Everything else a driver needs is declared:
 
 `train`, `reproduce`, `sweep`, the summaries and the studies read these declarations; none of them
 compares a method's name to a string. The paper's four methods are declared in
-`gpguided_jax.policy_gradient`, gp_critic in `gpguided_jax.critic`; a new method is a module with
+`gpguided_jax.policy_gradient`, gp_critic in `gpguided_jax.critic`, gp_model in
+`gpguided_jax.model_based`; a new method is a module with
 its `Method` and a call of `register` (a test may register one too).
 """
 
@@ -97,7 +98,7 @@ class Method(NamedTuple):
 _REGISTRY: dict[str, Method] = {}
 # modules that declare methods, imported on the first look-up (they import `train`'s pieces,
 # which import the config, which looks methods up: importing them here would be a cycle)
-_BUILTIN_MODULES = ("gpguided_jax.policy_gradient", "gpguided_jax.critic")
+_BUILTIN_MODULES = ("gpguided_jax.policy_gradient", "gpguided_jax.critic", "gpguided_jax.model_based")
 _loaded = False
 
 
@@ -138,10 +139,18 @@ def get(name: str) -> Method:
     return _REGISTRY[name]
 
 
+def _rank(name: str) -> int:
+    """The built-in modules' methods in the modules' order, whichever was imported first; then
+    the others (a test's), in registration order."""
+    module = _REGISTRY[name].update.__module__
+    return _BUILTIN_MODULES.index(module) if module in _BUILTIN_MODULES else len(_BUILTIN_MODULES)
+
+
 def names() -> tuple[str, ...]:
-    """Every registered method's name, in registration order (the paper's four first)."""
+    """Every registered method's name: the built-in ones (the paper's four first), then the
+    others, each in registration order."""
     _load_builtins()
-    return tuple(_REGISTRY)
+    return tuple(sorted(_REGISTRY, key=_rank))  # a stable sort: registration order within a rank
 
 
 def paper() -> tuple[str, ...]:

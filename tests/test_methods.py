@@ -39,7 +39,7 @@ def test_the_paper_methods_are_declared_and_the_drivers_read_their_declarations(
 
 @pytest.mark.parametrize("kw, words", [
     (dict(method="guided_direction", exploration="ou"), "guided_direction takes 'white' only, got "
-     "'ou', which is for reinforce, gp_pg, guided_variance and gp_critic only"),
+     "'ou', which is for reinforce, gp_pg, guided_variance, gp_critic and gp_model only"),
     (dict(method="guided_variance", exploration="parameter"), "for reinforce and gp_pg only"),
     (dict(method="no_such_method"), "unknown method 'no_such_method'"),
 ])

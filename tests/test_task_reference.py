@@ -285,6 +285,18 @@ def test_brax_inverted_pendulum_beside_gymnasium_v5(mujoco_pendulums):
         assert _gymnasium_mujoco_step(gym_env, [0.0, angle], [0.0, 0.0]) == (0.0 if ends else 1.0, ends)
 
 
+def test_brax_inverted_pendulum_reward_and_end_as_the_task_states_them():
+    """`tasks.BRAX_REWARDS`' reward and end of brax's inverted pendulum (what a model of the task
+    plans with) are those of brax's step, from hand-made states on both sides of the end."""
+    brax_env = _brax_env("inverted_pendulum")
+    reward_fn, end_fn = tasks.BRAX_REWARDS["inverted_pendulum"]
+    for angle in (0.0, 0.15, 0.199, 0.201, -0.25, 0.6):
+        state, _ = _brax_step(brax_env, 0.3, q=jnp.array([0.1, angle]), qd=jnp.array([0.2, -0.4]))
+        obs = jnp.asarray(state.obs)
+        assert float(reward_fn(obs, 0.3, obs)) == state.reward
+        assert bool(end_fn(obs)) == state.done
+
+
 def _double_pendulum_reward(x, y, v1, v2):
     """The reward and end that both define: the tip at (x, y) m, the hinges' speeds v1, v2."""
     end = bool(y <= 1)

@@ -1,0 +1,311 @@
+"""gp_model (`gpguided_jax.model_based`): the model against an exact GP and the DTC equations in
+NumPy, its function samples against the posterior, the tasks' stated rewards against the
+environments', the simulated return's gradient against finite differences, and the controller
+optimised through a learned model against the LQR gain of scipy's Riccati solver."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+
+from gpguided_jax import config as C
+from gpguided_jax import controllers as controllers_lib
+from gpguided_jax import hyperfit, kernels, methods, model_based as MB, rollouts, tasks
+from gpguided_jax import train as T
+
+
+def _se(a, b, ls, sf2):
+    d = (a[:, None, :] - b[None, :, :]) / ls
+    return sf2 * np.exp(-0.5 * np.sum(d * d, axis=-1))
+
+
+def _data(rng, n, d):
+    xs = rng.normal(size=(n, d))
+    ys = np.sin(xs @ rng.normal(size=d)) + 0.1 * rng.normal(size=n)
+    return xs, ys
+
+
+KERN = dict(ls=np.array([0.9, 1.3, 0.7]), sf2=1.7, sn2=0.05)
+
+
+def _kernel(dtype):
+    return kernels.make_kernel_params(KERN["ls"], KERN["sf2"], KERN["sn2"], dtype=dtype)
+
+
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_with_every_input_inducing_the_model_is_the_exact_gp(dtype):
+    """Z = the data: the sparse GP's mean and variance are the exact GP's (Cholesky in NumPy),
+    and the buffer's unwritten slots (junk, masked) change nothing."""
+    rng = np.random.default_rng(0)
+    xs, ys = _data(rng, 25, 3)
+    junk = rng.normal(size=(7, 3)) * 50.0
+    x_all = np.concatenate([xs, junk])
+    y_all = np.concatenate([ys, rng.normal(size=7) * 1e3])
+    valid = np.arange(32) < 25
+    zmask = np.ones(25, bool)
+    jitter = 1e-12 if dtype == "float64" else 1e-6
+    m = MB.condition(jnp.asarray(xs, dtype), jnp.asarray(zmask), _kernel(dtype),
+                     jnp.asarray(x_all, dtype), jnp.asarray(y_all, dtype), jnp.asarray(valid),
+                     jitter=jitter)
+    m = jax.tree_util.tree_map(lambda a: a[None], m)._replace(inducing=m.inducing,
+                                                             inducing_mask=m.inducing_mask)
+    tests_x = rng.normal(size=(9, 3))
+    k = _se(xs, xs, KERN["ls"], KERN["sf2"]) + KERN["sn2"] * np.eye(25)
+    ks = _se(tests_x, xs, KERN["ls"], KERN["sf2"])
+    mean_ref = ks @ np.linalg.solve(k, ys)
+    var_ref = KERN["sf2"] - np.sum(ks * np.linalg.solve(k, ks.T).T, axis=1)
+    got = [MB.predict(m, jnp.asarray(x, dtype)) for x in tests_x]
+    mean, var = np.array([g[0][0] for g in got]), np.array([g[1][0] for g in got])
+    rtol = 1e-7 if dtype == "float64" else 2e-3
+    np.testing.assert_allclose(mean, mean_ref, rtol=rtol, atol=rtol * np.abs(mean_ref).max())
+    np.testing.assert_allclose(var, var_ref, rtol=rtol * 10, atol=rtol * KERN["sf2"] * 10)
+
+
+def test_with_fewer_inducing_inputs_it_is_the_dtc_posterior_in_numpy():
+    """M < N: mean sigma^-2 k Sigma K_ZX y, variance k** - k K_ZZ^-1 k + k Sigma k, Sigma =
+    (K_ZZ + sigma^-2 K_ZX K_XZ)^-1, written directly (the same jitter on K_ZZ); an unused
+    inducing slot changes nothing."""
+    rng = np.random.default_rng(1)
+    xs, ys = _data(rng, 60, 3)
+    z = xs[:8]
+    zpad = np.concatenate([z, rng.normal(size=(2, 3))])
+    zmask = np.arange(10) < 8
+    m = MB.condition(jnp.asarray(zpad), jnp.asarray(zmask), _kernel("float64"), jnp.asarray(xs),
+                     jnp.asarray(ys), jnp.ones(60, bool))
+    m = jax.tree_util.tree_map(lambda a: a[None], m)._replace(inducing=m.inducing,
+                                                             inducing_mask=m.inducing_mask)
+    kzz = _se(z, z, KERN["ls"], KERN["sf2"]) + MB.JITTER * KERN["sf2"] * np.eye(8)
+    kzx = _se(z, xs, KERN["ls"], KERN["sf2"])
+    sigma = np.linalg.inv(kzz + kzx @ kzx.T / KERN["sn2"])
+    for x in rng.normal(size=(6, 3)):
+        k = _se(x[None], z, KERN["ls"], KERN["sf2"])[0]
+        mean_ref = k @ sigma @ kzx @ ys / KERN["sn2"]
+        var_ref = KERN["sf2"] - k @ np.linalg.solve(kzz, k) + k @ sigma @ k
+        mean, var = MB.predict(m, jnp.asarray(x))
+        np.testing.assert_allclose(float(mean[0]), mean_ref, rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(float(var[0]), var_ref, rtol=1e-6, atol=1e-9)
+
+
+def test_function_samples_have_the_posterior_mean_and_covariance():
+    """f(x) = k(x, Z) w over 20,000 draws of w: its mean is the model's mean and its covariance
+    at two inputs k_1 Sigma k_2 (the inducing values' posterior), within Monte-Carlo error."""
+    rng = np.random.default_rng(2)
+    xs, ys = _data(rng, 40, 3)
+    z = xs[:6]
+    m = MB.condition(jnp.asarray(z), jnp.ones(6, bool), _kernel("float64"), jnp.asarray(xs),
+                     jnp.asarray(ys), jnp.ones(40, bool))
+    m = jax.tree_util.tree_map(lambda a: a[None], m)._replace(inducing=m.inducing,
+                                                             inducing_mask=m.inducing_mask)
+    w = np.asarray(MB.sample_weights(m, jax.random.key(0), (20000,)))[:, 0]  # (S, M)
+    x2 = rng.normal(size=(2, 3))
+    kx = _se(x2, z, KERN["ls"], KERN["sf2"])  # (2, M)
+    f = w @ kx.T  # (S, 2)
+    kzz = _se(z, z, KERN["ls"], KERN["sf2"]) + MB.JITTER * KERN["sf2"] * np.eye(6)
+    kzx = _se(z, xs, KERN["ls"], KERN["sf2"])
+    sigma = np.linalg.inv(kzz + kzx @ kzx.T / KERN["sn2"])
+    cov_ref = kx @ sigma @ kx.T
+    mean_ref = kx @ sigma @ kzx @ ys / KERN["sn2"]
+    se = np.sqrt(np.diag(cov_ref) / 20000)
+    assert np.all(np.abs(f.mean(0) - mean_ref) < 5 * se)
+    cov = np.cov(f.T)
+    # the sample covariance's standard error: sqrt((s_ii s_jj + s_ij^2) / S)
+    cov_se = np.sqrt((np.outer(np.diag(cov_ref), np.diag(cov_ref)) + cov_ref ** 2) / 20000)
+    assert np.all(np.abs(cov - cov_ref) < 5 * cov_se)
+
+
+def test_the_buffer_keeps_the_newest_transitions_and_the_targets_wrap_angles():
+    data = MB.empty_data(5, 2, 1, jnp.float64, ())
+    for start in (0, 3, 6):
+        x = jnp.arange(start, start + 3, dtype=jnp.float64)
+        data = MB.take_in(data, jnp.stack([x, x], 1), x[:, None], jnp.ones(3, bool))
+    # 9 written into 5 slots: 5..8, slot i holding the transition written i mod 5
+    assert int(data.count) == 9
+    assert sorted(np.asarray(data.inputs[:, 0]).tolist()) == [4.0, 5.0, 6.0, 7.0, 8.0]
+    task = tasks.make_task("pendulum")
+    obs = jnp.array([6.2, 1.0])
+    nxt = jnp.array([0.05, 1.2])  # wrapped past 2 pi
+    d = MB.targets_of(task, obs, nxt)
+    np.testing.assert_allclose(np.asarray(d), [0.05 + 2 * np.pi - 6.2, 0.2], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(MB.next_of(task, obs, d)), np.asarray(nxt), atol=1e-12)
+
+
+# ------------------------------------------------------------------------- the stated rewards
+
+
+def _random_transitions(task, cfg, key, episodes=4, steps=60, start=None):
+    def episode(k):
+        k0, ks = jax.random.split(k)
+        env_state, obs = task.reset(k0, cfg)
+        if start is not None:
+            env_state, obs = start(env_state, cfg)
+
+        def body(carry, kk):
+            env_state, obs = carry
+            ka, ke = jax.random.split(kk)
+            a = jax.random.uniform(ka, (), cfg.dtype, -task.max_action, task.max_action)
+            env_state, nxt, r, done = task.step(ke, env_state, a, cfg)
+            return (env_state, nxt), (obs, a, nxt, r, done)
+
+        _, out = jax.lax.scan(body, (env_state, obs), jax.random.split(ks, steps))
+        return out
+
+    out = jax.vmap(episode)(jax.random.split(key, episodes))
+    return jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), out)
+
+
+def _car_near_goal(env_state, cfg):
+    s = env_state.replace(position=jnp.float32(0.42), velocity=jnp.float32(0.05))
+    return s, jnp.stack([s.position, s.velocity]).astype(cfg.dtype)
+
+
+@pytest.mark.parametrize("env,start", [
+    ("pendulum", None), ("gymnax:Pendulum-v1", None),
+    ("gymnax:MountainCarContinuous-v0", None), ("gymnax:MountainCarContinuous-v0", _car_near_goal)])
+def test_the_stated_reward_and_end_are_the_environments(env, start):
+    """Along random-action roll-outs (before each episode's first end): Task.reward_fn of each
+    transition is the environment's reward, and Task.end_fn its end (brax's inverted pendulum's:
+    tests/test_task_reference.py, on brax's own step)."""
+    task = tasks.make_task(env)
+    pend = {"reward_noise_std": 0.0} if env == "pendulum" else None
+    cfg = C.make_config(env=env, dtype="float32", pendulum_overrides=pend)
+    obs, a, nxt, r, done = _random_transitions(task, cfg, jax.random.key(3), start=start)
+    n = obs.shape[0] // 4
+    first = np.asarray(jnp.cumsum(done.reshape(4, n), axis=1) - done.reshape(4, n) == 0).reshape(-1)
+    stated = np.asarray(jax.vmap(task.reward_fn)(obs, a, nxt))
+    np.testing.assert_allclose(stated[first], np.asarray(r)[first], rtol=1e-5, atol=1e-5)
+    if task.end_fn is not None:
+        ends = np.asarray(jax.vmap(task.end_fn)(nxt))
+        np.testing.assert_array_equal(ends[first], np.asarray(done)[first])
+        if start is not None:  # roll-outs that reach the end checked
+            assert np.asarray(done)[first].any()
+    else:
+        assert not np.asarray(done).any()
+
+
+def test_a_task_without_a_stated_reward_is_refused_in_one_line():
+    task = _linear_task()._replace(name="test:unstated", reward_fn=None)
+    tasks.register(task)
+    try:
+        with pytest.raises(ValueError, match="does not state"):
+            C.make_config(env="test:unstated", method="gp_model")
+    finally:
+        tasks._REGISTERED.pop("test:unstated", None)
+        tasks.make_task.cache_clear()
+    with pytest.raises(ValueError, match="model_exploration"):
+        C.make_config(method="gp_model", model_exploration="greedy")
+
+
+# ---------------------------------------------------------------- gradients and the LQR gain
+
+
+@functools.cache
+def _pendulum_v1_model():
+    cfg = C.make_config(env="gymnax:Pendulum-v1", method="gp_model", controller="rbf",
+                        episode_length=20, num_updates=2, episodes_per_update=1,
+                        model_inducing=30, model_particles=3, model_horizon=0.5)
+    prog = rollouts.make_program(cfg)
+    task = prog.task
+    obs, a, nxt, _, _ = _random_transitions(task, cfg, jax.random.key(4), episodes=3, steps=40)
+    xs = jax.vmap(task.features)(obs, a)
+    data = MB.take_in(MB.init(prog, None, cfg), xs, MB.targets_of(task, obs, nxt),
+                      jnp.ones(obs.shape[0], bool))
+    data = data._replace(log_kernels=MB.refit(jax.random.key(5), data, subset_size=100,
+                                              num_steps=30, first=True))
+    model, mean = MB.build(data, cfg.model_inducing)
+    return cfg, prog, data, model, mean
+
+
+@pytest.mark.parametrize("exploration", ["sample", "optimistic"])
+def test_the_simulated_return_gradient_matches_finite_differences(exploration):
+    """jax.grad of the simulated return (particles, sampled functions and transition noise held
+    fixed) against central differences along random directions of the controller's and
+    hallucination's parameters, float64."""
+    cfg, prog, data, model, mean = _pendulum_v1_model()
+    plan = MB.make_plan(prog, cfg, model, jax.random.key(6), exploration, 3, MB.plan_steps(prog, cfg))
+    rng = np.random.default_rng(7)
+    params0 = jax.tree_util.tree_map(lambda p: jnp.asarray(rng.normal(size=p.shape) * 0.3),
+                                     prog.controller.init(jnp.float64))
+    hall0 = jax.tree_util.tree_map(lambda p: jnp.asarray(rng.normal(size=p.shape) * 0.3),
+                                   data.hallucination)
+    optimistic = exploration == "optimistic"
+
+    def f(p):
+        return MB.simulate(prog, model, mean, plan, p[0], p[1] if optimistic else None, 1.5)
+
+    p0 = (params0, hall0)
+    g = jax.grad(f)(p0)
+    for _ in range(3):
+        d = jax.tree_util.tree_map(lambda p: jnp.asarray(rng.normal(size=p.shape)), p0)
+        h = 1e-5
+        plus = f(jax.tree_util.tree_map(lambda p, v: p + h * v, p0, d))
+        minus = f(jax.tree_util.tree_map(lambda p, v: p - h * v, p0, d))
+        fd = (plus - minus) / (2 * h)
+        ad = sum(jnp.sum(a * b) for a, b in zip(jax.tree_util.tree_leaves(g), jax.tree_util.tree_leaves(d)))
+        np.testing.assert_allclose(float(ad), float(fd), rtol=1e-5, atol=1e-7)
+    if not optimistic:  # the hallucination enters only the optimistic roll-outs
+        assert all(float(jnp.max(jnp.abs(x))) == 0.0 for x in jax.tree_util.tree_leaves(g[1]))
+
+
+LQR = dict(a=1.0, b=0.5, q=1.0, r=0.1, u_max=20.0)
+
+
+def _linear_task() -> tasks.Task:
+    """x' = a x + b u (+ 0.01 N(0, 1)), reward -(q x^2 + r u^2), x0 ~ U(-1, 1)."""
+    a, b, q, r, u_max = (LQR[k] for k in ("a", "b", "q", "r", "u_max"))
+
+    def reset(key, cfg):
+        x = jax.random.uniform(key, (1,), cfg.dtype, -1.0, 1.0)
+        return x, x
+
+    def step(key, x, u, cfg):
+        nxt = a * x + b * u + 0.01 * jax.random.normal(key, (1,), cfg.dtype)
+        return nxt, nxt, -(q * x[0] ** 2 + r * u ** 2), jnp.zeros((), bool)
+
+    def make_controller(name):
+        del name
+        return controllers_lib.make_squashed(
+            lambda x: controllers_lib.LinearParams(jnp.concatenate([x, jnp.ones((1,), x.dtype)])),
+            lambda dtype: controllers_lib.LinearParams(jnp.zeros((2,), dtype)), u_max, state_dim=1)
+
+    return tasks.Task(
+        name="test:linear", obs_dim=1, dt=1.0, max_action=u_max, episode_length=30,
+        terminates=False, threshold=None, reset=reset, step=step,
+        features=lambda x, u: jnp.concatenate([x, jnp.reshape(u, (1,))]), feature_dim=2,
+        make_controller=make_controller, obs_centre=np.zeros(1), obs_scale=np.ones(1),
+        reward_fn=lambda x, u, nxt: -(q * x[0] ** 2 + r * u ** 2))
+
+
+def test_the_controller_optimised_through_a_learned_model_approaches_the_lqr_gain():
+    """On x' = x + 0.5 u with cost x^2 + 0.1 u^2: the model learned from two episodes of random
+    actions, the linear controller optimised by L-BFGS through 30-step simulated roll-outs from
+    the start distribution; its gain -du/dx at 0 is the LQR gain of scipy's discrete Riccati
+    solver (the simulated cost is flat near it: 3% of gain is 0.1% of cost)."""
+    task = tasks.register(_linear_task())
+    try:
+        cfg = C.make_config(env="test:linear", method="gp_model", controller="linear",
+                            episode_length=30, num_updates=1, episodes_per_update=2,
+                            init_log_std=float(np.log(3.0)), model_particles=32, model_steps=30,
+                            model_horizon=30.0, model_inducing=60, model_optimizer="lbfgs")
+        train = T.make_train(cfg)
+        state, rec = jax.jit(train)(jax.random.key(8))
+        w = np.asarray(state.theta.controller.weights)
+        gain = -LQR["u_max"] * w[0]  # d/dx u_max tanh(w0 x + w1) at x = 0 (w1 ~ 0)
+        a, b, q, r = (np.array([[LQR[k]]]) for k in ("a", "b", "q", "r"))
+        p = scipy.linalg.solve_discrete_are(a, b, q, r)
+        k_lqr = float((np.linalg.solve(r + b.T @ p @ b, b.T @ p @ a))[0, 0])
+        assert abs(w[1]) * LQR["u_max"] < 0.05
+        assert gain == pytest.approx(k_lqr, rel=0.03), (gain, k_lqr)
+    finally:
+        tasks._REGISTERED.pop("test:linear", None)
+        tasks.make_task.cache_clear()
+
+
+def test_it_is_a_registered_method_the_drivers_take():
+    m = methods.get("gp_model")
+    assert "gp_model" in C.METHODS and "gp_model" not in C.PAPER_METHODS
+    assert m.prior == "none" and set(MB.RECORDS) <= set(T.record_fields("gp_model"))
