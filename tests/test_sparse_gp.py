@@ -6,6 +6,8 @@ plain NumPy online GP `gp_reference` (Csato-Opper's own Q/C recursion on variabl
 in np.longdouble (80-bit) as the high-precision oracle of long and ill-conditioned streams.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -65,9 +67,21 @@ def _predict(state, xs, hyper):
     return np.asarray(mean, np.float64), np.asarray(var, np.float64)
 
 
-def _update_batch_jit(hyper=None, **kw):
+@functools.partial(jax.jit, static_argnames="age_fn")
+def _update_batch_args(state, xs, ys, ts, hyper, traced, age_fn):
+    return sparse_gp.update_batch(state, xs, ys, hyper, ts, with_info=True, age_fn=age_fn, **traced)
+
+
+def _update_batch_jit(hyper=None, novelty_tol=0.0, age_penalty=0.0, age_scale=1.0, age_fn="exp"):
+    """`update_batch` with info, compiled, as a function of (state, xs, ys, timestamps). The
+    hyperparameters and the traceable settings (`update_with_info`'s defaults unless given) are
+    arguments of one compiled program per shape, dtype and age function, as training passes
+    them: the tests that differ only in their values share it. Python floats stay Python
+    floats (weakly typed), so they promote as the same constants would."""
     hyper = hyper if hyper is not None else _hyper()
-    return jax.jit(lambda s, x, y, t: sparse_gp.update_batch(s, x, y, hyper, t, with_info=True, **kw))
+    traced = dict(novelty_tol=float(novelty_tol), age_penalty=float(age_penalty),
+                  age_scale=float(age_scale))
+    return lambda s, x, y, t: _update_batch_args(s, x, y, t, hyper, traced, age_fn)
 
 
 def _same_set(a, b, decimals=9):
@@ -539,7 +553,7 @@ def test_sweep_over_age_penalty_is_one_vmap():
 
 
 def test_non_finite_pairs_are_skipped():
-    xs, ys = _data(20, 7)
+    xs, ys = _data(12, 7)  # as many pairs as the batch below: one compiled program for both
     # compiled (op by op, every operation of the loops would be compiled on its own)
     update_batch = jax.jit(sparse_gp.update_batch)
     update = jax.jit(sparse_gp.update)
