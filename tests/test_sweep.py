@@ -54,6 +54,10 @@ def test_x_scale():
     assert S._x_scale(np.array([-1.0, 10.0, 100.0]))[0] == "linear"
 
 
+# The two tests below sweep the tiny preset's gp_pg over 3 values x 2 seeds: one program of the
+# same shapes, compiled by the first and loaded from the test run's compilation cache by the
+# second (in one worker, one after the other).
+@pytest.mark.xdist_group("tiny_sweep")
 def test_sweep_is_one_program_and_writes_its_files(tmp_path, monkeypatch):
     traces = {"init": 0, "run_chunk": 0}
     make_train = S.train_lib.make_train
@@ -131,6 +135,7 @@ def test_cli_sweep_help(capsys):
     assert "--param" in capsys.readouterr().out
 
 
+@pytest.mark.xdist_group("tiny_sweep")  # see test_sweep_is_one_program_and_writes_its_files
 def test_sweep_runs_equal_the_same_runs_alone(tmp_path):
     """On a CPU the sweep takes its runs one after another (`sharding.per_seed_program`, map):
     a (value, seed) run's records are those of `reproduce.run_method` for that value's config and
@@ -141,7 +146,7 @@ def test_sweep_runs_equal_the_same_runs_alone(tmp_path):
     from gpguided_jax import config as C
     from gpguided_jax import reproduce, sharding
 
-    values, seeds = [0.001, 0.01], [3, 4]
+    values, seeds = [0.001, 0.01, 0.1], [3, 4]
     result = S.run_sweep("lr", values, method="gp_pg", preset="tiny", seeds=seeds,
                          overrides={"num_updates": 4}, chunk_size=2, progress=lambda m: None)
     mesh = sharding.make_mesh(1)
