@@ -45,14 +45,19 @@ from gpguided_jax import config as config_lib  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 METHOD = "gp_model"
-TASKS = ("pendulum-v1",)
+TASKS = ("pendulum-v1", "inverted-pendulum")
 # learning steps of a run: the aim's budget (2,000 on Pendulum-v1), one episode an update, and one
 # more update whose evaluation is that of the policy after the whole budget
-BUDGETS = {"pendulum-v1": 2000}
+BUDGETS = {"pendulum-v1": 2000, "inverted-pendulum": 6000}
 # the settings every run starts from: one episode an update; the first episode's noise is half
 # the torque range, the floor after it (`model_based` notes)
+# (brax's inverted pendulum: episodes restarted where they end, so that every slot is a step, as
+# for SAC and PPO; the simulated roll-outs as long as the standard tasks' other settings allow)
 BASE = {"pendulum-v1": dict(episodes_per_update=1, init_log_std=0.0, min_std=0.05,
-                            eval_episodes=10)}
+                            eval_episodes=10),
+        "inverted-pendulum": dict(episodes_per_update=1, episode_end="restart",
+                                  init_log_std=math.log(0.5), min_std=0.05, eval_episodes=5,
+                                  model_capacity=3000, model_horizon=8.0)}
 # (parameter, values) per stage, applied over the best so far (its default between the values):
 # the exploration choice, the simulated horizon (s; default 4), the Adam step (0.01), the
 # optimiser steps per update (100), the inducing inputs (200) and L-BFGS in place of Adam
@@ -61,10 +66,14 @@ GRIDS = {"pendulum-v1": [("model_exploration", list(model_based.EXPLORATIONS)),
                          ("model_learning_rate", [0.003, 0.03]),
                          ("model_steps", [50, 200]),
                          ("model_inducing", [100, 400]),
-                         ("model_optimizer", ["lbfgs"])]}
+                         ("model_optimizer", ["lbfgs"])],
+         # a smaller grid where a run costs more: the exploration choice and the horizon (8 s)
+         "inverted-pendulum": [("model_exploration", list(model_based.EXPLORATIONS)),
+                               ("model_horizon", [4.0, 16.0])]}
 STANDARD = os.path.join(ROOT, "docs", "results", "standard")
 BASELINES = ("sac", "ppo")
-PAPER = ("reinforce", "gp_pg", "guided_variance", "guided_direction", "gp_critic")
+PAPER = tuple(f"{m}{end}" for end in ("", "_restart") for m in
+              ("reinforce", "gp_pg", "guided_variance", "guided_direction", "gp_critic"))
 
 
 def overrides(task: str, settings: dict) -> dict:
