@@ -141,7 +141,9 @@ def test_steps_after_an_early_end_are_masked():
     for leaf in jax.tree_util.tree_leaves(ep.scores):
         assert np.all(np.asarray(leaf)[n:] == 0) and np.any(np.asarray(leaf)[:n] != 0)
     returns = estimators.discounted_returns(ep.rewards, cfg.discount)
-    gp, fired, _ = train._take_in(prog, cfg, state, state.gp, ep, returns)
+    # compiled: op by op, every operation of the GP's loops would be compiled on its own
+    gp, fired, _ = jax.jit(lambda s, e, r: train._take_in(prog, cfg, s, s.gp, e, r))(state, ep,
+                                                                                    returns)
     assert int(fired) == 0
     bvs = np.asarray(gp.basis_vectors)[np.asarray(gp.mask)]
     assert len(bvs) > 0 and np.all(bvs[:, 0] <= 1.025)  # no basis vector from beyond the end
@@ -183,7 +185,8 @@ def test_an_episode_that_ends_restarts_in_its_slots():
         ret = 1.0 + (0.0 if ends[t] else 0.9 * ret)
         expected[t] = ret
     np.testing.assert_allclose(returns, expected, rtol=1e-12)
-    gp, fired, _ = train._take_in(prog, cfg, state, state.gp, ep, jnp.asarray(returns))
+    gp, fired, _ = jax.jit(lambda s, e, r: train._take_in(prog, cfg, s, s.gp, e, r))(  # compiled
+        state, ep, jnp.asarray(returns))
     assert int(fired) == 0
     bvs = np.asarray(gp.basis_vectors)[np.asarray(gp.mask)][:, 0]
     later = x[np.flatnonzero(ends)[0] + 2:]  # the second episode on, past its start
