@@ -585,6 +585,57 @@ def exploration_standard_table(task: str) -> str:
     return "\n".join(lines)
 
 
+def model_table(task: str) -> str:
+    """`experiments/model_study.py report`: gp_model's exploration choices on held-out seeds,
+    beside SAC, PPO and the paper's best method."""
+    path = os.path.join("model", task, "heldout_table.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        d = json.load(f)
+    lines = ["| method | seeds reaching the threshold | environment steps to it, median | "
+             "wall time to it, median | final return, mean | P(better than the mean model) |",
+             "|---|---|---|---|---|---|"]
+    for r in d["rows"]:
+        wall = r.get("wall_to_threshold_median")
+        p = r.get("p_improvement_over_mean")
+        lines.append(f"| {r['method']} | {r['seeds_reaching']}/{r['seeds']} | "
+                     f"{_steps(r['steps_to_threshold_median'])} | "
+                     f"{'–' if wall is None else f'{wall:.0f} s'} | {r['final_return_mean']:.1f} | "
+                     f"{'–' if p is None else f'{p:.2f}'} |")
+    seeds = d["seeds"]
+    lines.append("")
+    lines.append(f"Held-out seeds {seeds[0]}–{seeds[-1]}; threshold {d['threshold']:g}, the mean "
+                 "return of the deterministic policy's evaluation episodes from the task's random "
+                 f"starts. gp_model ran {d['budget']:,} environment steps of learning; SAC, PPO and "
+                 f"the paper's best method here ({d['paper_best']}) are the standard-tasks study's "
+                 "held-out runs at their own budgets. Final return: the last evaluation of each "
+                 "run (for the others, the last of their longer runs). Wall time to the threshold: "
+                 "a run's seconds per seed (compilation included), in proportion to its steps at "
+                 "the threshold, on a 2-core CPU that other runs shared at times (an indication, "
+                 "not a benchmark). P(better than the mean model): the probability that a seed's "
+                 "final return under the choice beats one under the mean model (Mann–Whitney). "
+                 + _source(path))
+    return "\n".join(lines)
+
+
+def model_tuning_table(task: str) -> str:
+    """`experiments/model_study.py tune`: every configuration tried on the tuning seeds."""
+    path = os.path.join("model", task, "tuning.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        d = json.load(f)
+    fmt = lambda v: f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
+    lines = ["| settings | score (tuning seeds) | final return | chosen |", "|---|---|---|---|"]
+    for t in d["tried"]:
+        settings = ", ".join(f"{k}={fmt(v)}" for k, v in t["settings"].items()) or "(the defaults)"
+        lines.append(f"| {settings} | {t['score']:.1f} | {t['final']:.1f} | "
+                     f"{'yes' if t['settings'] == d['chosen'] else ''} |")
+    lines.append("")
+    lines.append(f"Tuning seeds {d['seeds']}, {d['budget']:,} environment steps of learning per "
+                 "run. Score: the mean return of the deterministic policy over the evaluations in "
+                 "the second half of the budget, mean over seeds. " + _source(path))
+    return "\n".join(lines)
+
+
+MODEL_TASKS = ("pendulum-v1", "inverted-pendulum")  # with a gp_model study
 STANDARD_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
                   "inverted-double-pendulum")  # with a comparison
 
@@ -614,6 +665,9 @@ TABLES = {
        for t in ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum")},
     **{f"standard_tuning_{t.replace('-', '_')}": (lambda t=t: standard_tuning_table(t))
        for t in STANDARD_TASKS},
+    **{f"model_{t.replace('-', '_')}": (lambda t=t: model_table(t)) for t in MODEL_TASKS},
+    **{f"model_tuning_{t.replace('-', '_')}": (lambda t=t: model_tuning_table(t))
+       for t in MODEL_TASKS},
 }
 BLOCK = re.compile(r"(<!-- generated: (\w+) -->\n)(.*?)(<!-- end: \2 -->)", re.S)
 

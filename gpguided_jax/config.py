@@ -171,6 +171,8 @@ class TrainConfig:
         gathered an update's episodes and the improved one, over the update's decision states.
       model_learning_rate: gp_model's Adam step size on the simulated return.
       model_beta: gp_model's optimism, the confidence multiple of the hallucinated control.
+      model_end_softness: gp_model's smoothing of a task's end in its simulated roll-outs (the
+        temperature of the end's probability, in units of the observation's normalisation scale).
     """
 
     # static
@@ -232,6 +234,7 @@ class TrainConfig:
     trust_region: Any = 0.05
     model_learning_rate: Any = 0.01
     model_beta: Any = 1.0
+    model_end_softness: Any = 0.1
 
     def replace(self, **changes) -> TrainConfig:
         return dataclasses.replace(self, **changes)
@@ -282,7 +285,7 @@ FIELD_GROUPS: dict[str, tuple[str, ...]] = {
     "critic": ("critic_steps", "critic_learning_rate", "trust_region"),
     "model": ("model_capacity", "model_inducing", "model_fit_subset", "model_fit_steps",
               "model_particles", "model_steps", "model_horizon", "model_exploration",
-              "model_optimizer", "model_learning_rate", "model_beta"),
+              "model_optimizer", "model_learning_rate", "model_beta", "model_end_softness"),
 }
 
 
@@ -304,7 +307,8 @@ jax.tree_util.register_dataclass(
 _POSITIVE = ("learning_rate", "max_grad_norm", "success_tolerance", "min_std", "max_std",
              "age_scale", "guided_variance_scale",
              "guided_variance_floor", "inverse_temperature", "energy_width", "candidate_scale",
-             "candidate_floor", "critic_learning_rate", "trust_region", "model_learning_rate")
+             "candidate_floor", "critic_learning_rate", "trust_region", "model_learning_rate",
+             "model_end_softness")
 _NON_NEGATIVE = ("age_penalty", "novelty_tol", "model_beta")
 
 

@@ -317,12 +317,21 @@ def make_plan(prog, cfg, model: SparseModel, key, exploration: str, num_particle
 
 
 def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_params,
-             hallucination=None, beta=None):
-    """The mean over particles of the simulated returns (undiscounted sums of the task's reward
-    over the plan's steps, none after a simulated end). `hallucination`: eta's controller
-    parameters, (E,)-batched (the optimistic choice)."""
+             hallucination=None, beta=None, end_softness=0.1):
+    """The mean over particles of the simulated returns: undiscounted sums of the task's reward
+    over the plan's steps, each weighed by the particle's probability of being alive. A task
+    with an end margin (`Task.end_margin`) ends a step with probability sigmoid(margin /
+    `end_softness`), a smoothed end whose gradient reaches the controller where the hard end's
+    is 0 (its reward, where the end enters it, takes that probability too); a task with only
+    `end_fn` ends hard. `hallucination`: eta's controller parameters, (E,)-batched (the
+    optimistic choice)."""
     task, controller = prog.task, prog.controller
     noise_std = jnp.sqrt(model.kernels.noise_variance)  # (E,)
+
+    def end_probability(nxt):
+        if task.end_margin is not None:
+            return jax.nn.sigmoid(task.end_margin(nxt) / end_softness)
+        return task.end_fn(nxt).astype(nxt.dtype)
 
     def particle(obs0, w, eps):
         def step(carry, eps_t):
@@ -336,20 +345,19 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
                 eta = jax.vmap(lambda p: controller.apply(p, obs))(hallucination) / controller.u_max
                 delta = delta + beta * jnp.sqrt(var) * eta
             nxt = next_of(task, obs, delta)
-            r = task.reward_fn(obs, a, nxt)
-            r = jnp.where(alive, r, 0.0)
-            if task.end_fn is not None:
-                alive = alive & ~task.end_fn(nxt)
-            return (nxt, alive), r
+            if task.end_fn is None:
+                return (nxt, alive), task.reward_fn(obs, a, nxt)
+            p_end = end_probability(nxt)
+            return (nxt, alive * (1.0 - p_end)), alive * task.reward_fn(obs, a, nxt, p_end)
 
-        _, rewards = jax.lax.scan(step, (obs0, jnp.ones((), bool)), eps)
+        _, rewards = jax.lax.scan(step, (obs0, jnp.ones((), obs0.dtype)), eps)
         return jnp.sum(rewards)
 
     return jnp.mean(jax.vmap(particle)(plan.start, plan.weights, plan.noise))
 
 
 def optimise(prog, model, target_mean, plan, params, hallucination, *, num_steps: int,
-             learning_rate, beta, optimistic: bool, optimizer: str = "adam"):
+             learning_rate, beta, optimistic: bool, optimizer: str = "adam", end_softness=0.1):
     """`num_steps` steps of `optimizer` on the simulated return from `params` (and eta's
     parameters, under optimism): 'adam' (step size `learning_rate`, the gradient clipped to norm
     1e3), or 'lbfgs' (optax's L-BFGS with its zoom line search; the plan's common random numbers
@@ -357,7 +365,8 @@ def optimise(prog, model, target_mean, plan, params, hallucination, *, num_steps
     Returns (params, hallucination, return before, return after)."""
     def objective(p):
         c, h = p
-        return -simulate(prog, model, target_mean, plan, c, h if optimistic else None, beta)
+        return -simulate(prog, model, target_mean, plan, c, h if optimistic else None, beta,
+                         end_softness)
 
     value_and_grad = jax.value_and_grad(objective)
     p0 = (params, hallucination)
@@ -440,7 +449,8 @@ def update(prog, cfg, state, batch):
     params, halluc, before, after = optimise(
         prog, model, target_mean, plan, state.theta.controller, data.hallucination,
         num_steps=static.model_steps, learning_rate=cfg.model_learning_rate, beta=cfg.model_beta,
-        optimistic=optimistic, optimizer=static.model_optimizer)
+        optimistic=optimistic, optimizer=static.model_optimizer,
+        end_softness=cfg.model_end_softness)
     data = data._replace(hallucination=halluc)
     theta = state.theta._replace(controller=params,
                                  log_std=jnp.log(jnp.asarray(cfg.min_std, prog.dtype)))

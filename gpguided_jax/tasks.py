@@ -96,11 +96,15 @@ class Task(NamedTuple):
       make_controller: (name) -> `controllers.Controller` on observations ('linear' or 'rbf').
       obs_centre, obs_scale: the normalisation z = (obs - centre) / scale (NumPy; zeros and ones
         for the pendulum, whose controllers and features take the raw state).
-      reward_fn: (obs, action, next_obs) -> the environment's reward as a pure function of the
-        transition (its mean, for the paper's pendulum's noisy reward); None where the task does
-        not state it. A model of the task (`gpguided_jax.model_based`) plans with it.
+      reward_fn: (obs, action, next_obs, end=None) -> the environment's reward as a pure
+        function of the transition (its mean, for the paper's pendulum's noisy reward); None
+        where the task does not state it. A model of the task (`gpguided_jax.model_based`) plans
+        with it. `end`: for a task whose reward depends on its end (the car's goal), the end's
+        indicator or a probability in [0, 1] in its place (default: `end_fn(next_obs)`).
       end_fn: (next_obs) -> bool, whether the transition ends the episode, where the end is a
         known function of the observation (None: the task never ends early, or does not say).
+      end_margin: (next_obs) -> the signed margin of the end, > 0 where `end_fn` holds, in units
+        of the observation's normalisation scale (a model plans with a smoothed end through it).
       angles: the observation coordinates that are angles wrapped to one turn (the model takes
         their differences and sums modulo 2 pi).
     """
@@ -122,6 +126,7 @@ class Task(NamedTuple):
     reward_fn: Callable[..., Any] | None = None
     end_fn: Callable[..., Any] | None = None
     angles: tuple[int, ...] = ()
+    end_margin: Callable[..., Any] | None = None
 
 
 def discount_for_horizon(horizon_s: float, dt: float) -> float:
@@ -160,7 +165,8 @@ def _pendulum_task() -> Task:
         features=kernels.state_action_features, feature_dim=4,
         make_controller=lambda name: controllers_lib.make_controller(name, u_max=PENDULUM_U_MAX),
         obs_centre=np.zeros(2), obs_scale=np.ones(2),
-        reward_fn=lambda obs, action, next_obs: pendulum.reward_mean(next_obs), angles=(0,))
+        reward_fn=lambda obs, action, next_obs, end=None: pendulum.reward_mean(next_obs),
+        angles=(0,))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -183,32 +189,38 @@ class _Adapter(NamedTuple):
     episode_length: int
     reset: Callable  # key -> (env_state, obs, float32)
     step: Callable  # (key, env_state, action) -> (env_state, obs, reward, done)
-    reward_fn: Callable | None = None  # (obs, action, next_obs) -> reward (`Task.reward_fn`)
+    reward_fn: Callable | None = None  # (obs, action, next_obs, end=None) -> reward
     end_fn: Callable | None = None  # next_obs -> bool (`Task.end_fn`)
+    end_margin: Callable | None = None  # (next_obs, scale) -> signed margin (`Task.end_margin`)
 
 
 def _pendulum_v1_reward(params):
     """Pendulum-v1's reward of the state an action is taken in, -(theta^2 + 0.1 theta_dot^2 +
     0.001 u^2), theta in (-pi, pi] read from the observation (cos theta, sin theta, theta_dot) and
     u the torque clipped to the bound."""
-    def reward(obs, action, next_obs):
-        del next_obs
+    def reward(obs, action, next_obs, end=None):
+        del next_obs, end
         theta = jnp.arctan2(obs[1], obs[0])
         u = jnp.clip(action, -params.max_torque, params.max_torque)
         return -(theta ** 2 + 0.1 * obs[2] ** 2 + 0.001 * u ** 2)
-    return reward, None
+    return reward, None, None
 
 
 def _car_reward(params):
     """MountainCarContinuous-v0's reward, -0.1 a^2 + 100 at the goal, and its end: the car at or
     past the goal position moving right (observation (position, velocity))."""
-    def end(next_obs):
+    def at_goal(next_obs):
         return (next_obs[0] >= params.goal_position) & (next_obs[1] >= params.goal_velocity)
 
-    def reward(obs, action, next_obs):
+    def margin(next_obs, scale):
+        return jnp.minimum((next_obs[0] - params.goal_position) / scale[0],
+                           (next_obs[1] - params.goal_velocity) / scale[1])
+
+    def reward(obs, action, next_obs, end=None):
         del obs
-        return -0.1 * action ** 2 + 100.0 * end(next_obs).astype(next_obs.dtype)
-    return reward, end
+        e = at_goal(next_obs) if end is None else end
+        return -0.1 * action ** 2 + 100.0 * jnp.asarray(e, next_obs.dtype)
+    return reward, at_goal, margin
 
 
 # The gymnax tasks whose reward and end are stated as functions of the transition.
@@ -245,9 +257,9 @@ def _gymnax_adapter(env_id: str) -> _Adapter:
         return state, obs, reward, done
 
     dt = float(getattr(params, "dt", 1.0))  # an environment without a time (the car): 1 s a step
-    reward_fn, end_fn = GYMNAX_REWARDS[env_id](params) if env_id in GYMNAX_REWARDS else (None, None)
+    stated = GYMNAX_REWARDS[env_id](params) if env_id in GYMNAX_REWARDS else (None, None, None)
     return _Adapter(int(np.prod(env.observation_space(params).shape)), dt, max_action,
-                    int(params.max_steps_in_episode), reset, step, reward_fn, end_fn)
+                    int(params.max_steps_in_episode), reset, step, *stated)
 
 
 def gymnasium_car_wall(env, state, params):
@@ -291,14 +303,13 @@ def _brax_adapter(name: str) -> _Adapter:
         s = env.step(state, a)
         return s, s.obs, s.reward, s.done > 0.5
 
-    reward_fn, end_fn = BRAX_REWARDS.get(name, (None, None))
     return _Adapter(int(env.observation_size), float(env.dt), 1.0, 1000, reset, step,
-                    reward_fn, end_fn)
+                    *BRAX_REWARDS.get(name, (None, None, None)))
 
 
-def _inverted_pendulum_reward(obs, action, next_obs):
+def _inverted_pendulum_reward(obs, action, next_obs, end=None):
     """brax's inverted pendulum pays 1 per step, the falling one included."""
-    del obs, action
+    del obs, action, end
     return jnp.ones((), next_obs.dtype)
 
 
@@ -307,9 +318,14 @@ def _inverted_pendulum_end(next_obs):
     return jnp.abs(next_obs[1]) > 0.2
 
 
+def _inverted_pendulum_margin(next_obs, scale):
+    return (jnp.abs(next_obs[1]) - 0.2) / scale[1]
+
+
 # The brax tasks whose reward and end are stated as functions of the transition (brax's double
 # pendulum's depend on the tip's height, which its observation does not hold).
-BRAX_REWARDS = {"inverted_pendulum": (_inverted_pendulum_reward, _inverted_pendulum_end)}
+BRAX_REWARDS = {"inverted_pendulum": (_inverted_pendulum_reward, _inverted_pendulum_end,
+                                      _inverted_pendulum_margin)}
 
 
 def _supported_line() -> str:
@@ -410,7 +426,9 @@ def _external_task(name: str, adapter: _Adapter) -> Task:
         reset=reset, step=step, features=features, feature_dim=adapter.obs_dim + 1,
         make_controller=lambda c: _observation_controller(
             c, adapter.max_action, centre, scale, rbf_centres, rbf_width),
-        obs_centre=centre, obs_scale=scale, reward_fn=adapter.reward_fn, end_fn=adapter.end_fn)
+        obs_centre=centre, obs_scale=scale, reward_fn=adapter.reward_fn, end_fn=adapter.end_fn,
+        end_margin=(None if adapter.end_margin is None else
+                    lambda o: adapter.end_margin(o, jnp.asarray(scale, o.dtype))))
 
 
 _REGISTERED: dict[str, Task] = {}

@@ -37,7 +37,7 @@ TEXT_FILES = sorted(
     if p != "CHANGELOG.md" and not p.startswith("docs/results/"))
 # The sections of docs/design.md that the code cites as docs/design.md#<anchor>.
 DESIGN_ANCHORS = ("pendulum", "gp-model", "sparse-gp", "policies", "estimators", "exploration",
-                  "algorithm-1", "methods", "critic",
+                  "algorithm-1", "methods", "critic", "model",
                   "tasks", "presets", "deviations", "decisions")
 
 

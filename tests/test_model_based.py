@@ -181,6 +181,11 @@ def test_the_stated_reward_and_end_are_the_environments(env, start):
     if task.end_fn is not None:
         ends = np.asarray(jax.vmap(task.end_fn)(nxt))
         np.testing.assert_array_equal(ends[first], np.asarray(done)[first])
+        margin = np.asarray(jax.vmap(task.end_margin)(nxt))
+        np.testing.assert_array_equal(margin[first] > 0, ends[first])
+        # the reward given the end's indicator is the reward
+        given = np.asarray(jax.vmap(task.reward_fn)(obs, a, nxt, jnp.asarray(ends)))
+        np.testing.assert_allclose(given[first], np.asarray(r)[first], rtol=1e-5, atol=1e-5)
         if start is not None:  # roll-outs that reach the end checked
             assert np.asarray(done)[first].any()
     else:

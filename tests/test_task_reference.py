@@ -289,12 +289,12 @@ def test_brax_inverted_pendulum_reward_and_end_as_the_task_states_them():
     """`tasks.BRAX_REWARDS`' reward and end of brax's inverted pendulum (what a model of the task
     plans with) are those of brax's step, from hand-made states on both sides of the end."""
     brax_env = _brax_env("inverted_pendulum")
-    reward_fn, end_fn = tasks.BRAX_REWARDS["inverted_pendulum"]
+    reward_fn, end_fn, margin = tasks.BRAX_REWARDS["inverted_pendulum"]
     for angle in (0.0, 0.15, 0.199, 0.201, -0.25, 0.6):
         state, _ = _brax_step(brax_env, 0.3, q=jnp.array([0.1, angle]), qd=jnp.array([0.2, -0.4]))
         obs = jnp.asarray(state.obs)
         assert float(reward_fn(obs, 0.3, obs)) == state.reward
-        assert bool(end_fn(obs)) == state.done
+        assert bool(end_fn(obs)) == state.done == bool(margin(obs, jnp.ones(4)) > 0)
 
 
 def _double_pendulum_reward(x, y, v1, v2):
