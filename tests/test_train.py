@@ -31,6 +31,19 @@ def _tiny_gp_program():
     return T.make_train(base), T.make_gp_methods_train(base)
 
 
+@functools.cache
+def _tiny_priors():
+    """The tiny preset's hyperparameter fit for the seeds KEYS (gp_pg's, which the three GP methods
+    share), compiled and run once in a worker for the tests that start from fitted priors."""
+    fit = T.make_train(C.preset("tiny", method="gp_pg")).fit_kernel_for_seed
+    return jax.jit(jax.vmap(fit))(KEYS)
+
+
+def _tiny_prior(i):
+    """Seed i's prior from `_tiny_priors`."""
+    return jax.tree_util.tree_map(lambda x: x[i], _tiny_priors())
+
+
 def _tiny_gp_run(key, index, cfg):
     """One seed's whole tiny run of the GP method `index` (config `cfg`) through the three GP
     methods' one program (`train.make_gp_methods_train`), as `gpguided reproduce` runs them."""
@@ -347,7 +360,8 @@ def test_gradient_clipping_bounds_the_step():
 def test_gp_guard_rejects_a_diverged_gp_and_counts_it():
     cfg = C.preset("tiny", method="gp_pg")
     prog = T.make_program(cfg)
-    state = jax.jit(lambda k: T.initial_state(prog, k, cfg))(jax.random.PRNGKey(1))
+    state = jax.jit(lambda k, p: T.initial_state(prog, k, cfg, p))(jax.random.PRNGKey(1),
+                                                                   _tiny_prior(1))
     ep = jax.jit(lambda s: T.rollout(prog, jax.random.PRNGKey(2), s.theta,
                                      T.policy_context(cfg, s.gp, s.kernel), prog.policy, cfg))(state)
     returns = estimators.discounted_returns(ep.rewards, cfg.discount)
@@ -369,7 +383,8 @@ def test_gp_stride_takes_every_kth_point_into_the_gp():
     cfg = C.preset("tiny", method="gp_pg", gp_stride=3, novelty_tol=0.0)
     prog = T.make_program(cfg)
     train = T.make_train(cfg)
-    state = jax.jit(train.init)(jax.random.PRNGKey(3))  # compiled: faster than op by op
+    # compiled (faster than op by op), from a fitted prior
+    state = jax.jit(lambda k, p: train.init(k, cfg, p))(jax.random.PRNGKey(3), _tiny_prior(0))
     new_state, _ = jax.jit(lambda s: T.one_update(prog, cfg, s))(state)
 
     @jax.jit
@@ -442,7 +457,7 @@ def test_gp_methods_program_runs_each_method_as_its_own_program():
     including a traced field that differs between the methods (each method a learning rate of
     its own, as the swing-up preset tunes them), and it is traced once for all three."""
     base = C.preset("tiny", method="gp_pg")
-    priors = jax.jit(jax.vmap(T.make_train(base).fit_kernel_for_seed))(KEYS)
+    priors = _tiny_priors()
     traces = []
     shared = T.make_gp_methods_train(base)
 
