@@ -30,6 +30,7 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 
@@ -90,11 +91,23 @@ def score(records: dict) -> dict:
 
 
 def tune(task: str, out: str) -> None:
+    """The coordinate search; each configuration's result is kept in tuning_runs.json as it
+    finishes, so that an interrupted search resumes where it stopped."""
     path = os.path.join(out, "tuning.json")
+    runs_path = os.path.join(out, "tuning_runs.json")
 
     def evaluate(configs):
-        return study.sweep_stage([overrides(task, c) for c in configs], score, method=METHOD,
-                                 preset=task, seeds=study.TUNING_SEEDS, progress=study.log)
+        results = []
+        for c in configs:
+            done = study.read_json(runs_path, {})
+            key = json.dumps(overrides(task, c), sort_keys=True)
+            if key not in done:
+                done[key] = study.sweep_stage([overrides(task, c)], score, method=METHOD,
+                                              preset=task, seeds=study.TUNING_SEEDS,
+                                              progress=study.log)[0]
+                study.write_json(runs_path, done)
+            results.append(done[key])
+        return results
 
     result = study.coordinate_search(study.stages(GRIDS[task]), evaluate, log=study.log)
     study.write_json(path, {"task": task, "seeds": list(study.TUNING_SEEDS),

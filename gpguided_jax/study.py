@@ -240,7 +240,8 @@ def sweep_stage(configs: list[dict], score: Callable[[dict], dict], *, method: s
 
     Args:
       configs: the config overrides of each configuration; they differ in one field (a traced
-        one: one program for the stage; a static one: one program per configuration).
+        one: one program for the stage; a static one: one program per configuration), or the
+        stage has one configuration.
       score: maps one configuration's records ((seeds, updates) each) to its scores.
 
     Returns:
@@ -250,11 +251,11 @@ def sweep_stage(configs: list[dict], score: Callable[[dict], dict], *, method: s
     missing = object()
     varying = [k for k in fields
                if any(c.get(k, missing) != configs[0].get(k, missing) for c in configs)]
-    if len(varying) != 1:
+    if len(varying) != 1 and len(configs) > 1:
         raise ValueError(f"a sweep's configurations differ in one field, these in {varying}")
-    field = varying[0]
+    field = varying[0] if varying else None  # None: a stage of one configuration
     common = {k: configs[0][k] for k in fields if k != field}
-    if field in config_lib.STATIC_FIELDS:
+    if field is None or field in config_lib.STATIC_FIELDS:
         # a static field fixes the program: each configuration is its own one-value sweep
         recs = []
         for c in configs:
