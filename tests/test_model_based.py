@@ -314,3 +314,42 @@ def test_it_is_a_registered_method_the_drivers_take():
     m = methods.get("gp_model")
     assert "gp_model" in C.METHODS and "gp_model" not in C.PAPER_METHODS
     assert m.prior == "none" and set(MB.RECORDS) <= set(T.record_fields("gp_model"))
+
+
+def test_a_smoothed_end_tends_to_the_hard_end_and_passes_a_gradient():
+    """A task that ends when x > 0.5 and pays 1 per step: with the end's temperature small the
+    simulated return is the hard end's; with a temperature the return's gradient in the
+    controller is not 0, where the hard end's is."""
+    base = _linear_task()
+    task = base._replace(
+        name="test:linear_end", reward_fn=lambda x, u, nxt, end=None: jnp.ones((), x.dtype),
+        end_fn=lambda nxt: nxt[0] > 0.5, end_margin=lambda nxt: nxt[0] - 0.5)
+    tasks.register(task)
+    try:
+        cfg = C.make_config(env="test:linear_end", method="gp_model", controller="linear",
+                            episode_length=30, num_updates=1, episodes_per_update=1,
+                            model_particles=8, model_horizon=10.0, model_inducing=30)
+        prog = rollouts.make_program(cfg)
+        rng = np.random.default_rng(9)
+        x = jnp.asarray(rng.uniform(-2, 2, size=(60, 1)))
+        u = jnp.asarray(rng.uniform(-3, 3, size=60))
+        nxt = LQR["a"] * x + LQR["b"] * u[:, None]
+        data = MB.take_in(MB.init(prog, None, cfg), jnp.concatenate([x, u[:, None]], 1),
+                          MB.targets_of(task, x, nxt), jnp.ones(60, bool))
+        data = data._replace(log_kernels=MB.refit(jax.random.key(1), data, subset_size=60,
+                                                  num_steps=30, first=True))
+        model, mean = MB.build(data, 30)
+        plan = MB.make_plan(prog, cfg, model, jax.random.key(2), "mean", 8, 10)
+        params = controllers_lib.LinearParams(jnp.array([0.01, 0.02]))
+        hard_prog = prog._replace(task=task._replace(end_margin=None))
+        hard = MB.simulate(hard_prog, model, mean, plan, params)
+        soft = MB.simulate(prog, model, mean, plan, params, end_softness=1e-6)
+        assert 1.0 < float(hard) < 10.0  # some particles end within the horizon, not all at once
+        np.testing.assert_allclose(float(soft), float(hard), rtol=1e-6)
+        g_hard = jax.grad(lambda p: MB.simulate(hard_prog, model, mean, plan, p))(params)
+        g_soft = jax.grad(lambda p: MB.simulate(prog, model, mean, plan, p, end_softness=0.1))(params)
+        assert float(jnp.max(jnp.abs(g_hard.weights))) == 0.0
+        assert float(jnp.max(jnp.abs(g_soft.weights))) > 1e-3
+    finally:
+        tasks._REGISTERED.pop("test:linear_end", None)
+        tasks.make_task.cache_clear()
