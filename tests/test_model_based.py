@@ -30,6 +30,15 @@ def _data(rng, n, d):
     return xs, ys
 
 
+_condition = jax.jit(MB.condition, static_argnames=("jitter",))
+
+
+@jax.jit
+def _predict(model, xs):
+    """The model's latent mean and variance at each of xs: (n, E) each."""
+    return jax.vmap(lambda x: MB.predict(model, x))(xs)
+
+
 KERN = dict(ls=np.array([0.9, 1.3, 0.7]), sf2=1.7, sn2=0.05)
 
 
@@ -49,7 +58,7 @@ def test_with_every_input_inducing_the_model_is_the_exact_gp(dtype):
     valid = np.arange(32) < 25
     zmask = np.ones(25, bool)
     jitter = 1e-12 if dtype == "float64" else 1e-6
-    m = MB.condition(jnp.asarray(xs, dtype), jnp.asarray(zmask), _kernel(dtype),
+    m = _condition(jnp.asarray(xs, dtype), jnp.asarray(zmask), _kernel(dtype),
                      jnp.asarray(x_all, dtype), jnp.asarray(y_all, dtype), jnp.asarray(valid),
                      jitter=jitter)
     m = jax.tree_util.tree_map(lambda a: a[None], m)._replace(inducing=m.inducing,
@@ -59,8 +68,7 @@ def test_with_every_input_inducing_the_model_is_the_exact_gp(dtype):
     ks = _se(tests_x, xs, KERN["ls"], KERN["sf2"])
     mean_ref = ks @ np.linalg.solve(k, ys)
     var_ref = KERN["sf2"] - np.sum(ks * np.linalg.solve(k, ks.T).T, axis=1)
-    got = [MB.predict(m, jnp.asarray(x, dtype)) for x in tests_x]
-    mean, var = np.array([g[0][0] for g in got]), np.array([g[1][0] for g in got])
+    mean, var = (np.asarray(v[:, 0]) for v in _predict(m, jnp.asarray(tests_x, dtype)))
     rtol = 1e-7 if dtype == "float64" else 2e-3
     np.testing.assert_allclose(mean, mean_ref, rtol=rtol, atol=rtol * np.abs(mean_ref).max())
     np.testing.assert_allclose(var, var_ref, rtol=rtol * 10, atol=rtol * KERN["sf2"] * 10)
@@ -75,20 +83,21 @@ def test_with_fewer_inducing_inputs_it_is_the_dtc_posterior_in_numpy():
     z = xs[:8]
     zpad = np.concatenate([z, rng.normal(size=(2, 3))])
     zmask = np.arange(10) < 8
-    m = MB.condition(jnp.asarray(zpad), jnp.asarray(zmask), _kernel("float64"), jnp.asarray(xs),
+    m = _condition(jnp.asarray(zpad), jnp.asarray(zmask), _kernel("float64"), jnp.asarray(xs),
                      jnp.asarray(ys), jnp.ones(60, bool))
     m = jax.tree_util.tree_map(lambda a: a[None], m)._replace(inducing=m.inducing,
                                                              inducing_mask=m.inducing_mask)
     kzz = _se(z, z, KERN["ls"], KERN["sf2"]) + MB.JITTER * KERN["sf2"] * np.eye(8)
     kzx = _se(z, xs, KERN["ls"], KERN["sf2"])
     sigma = np.linalg.inv(kzz + kzx @ kzx.T / KERN["sn2"])
-    for x in rng.normal(size=(6, 3)):
+    xt = rng.normal(size=(6, 3))
+    mean, var = _predict(m, jnp.asarray(xt))
+    for i, x in enumerate(xt):
         k = _se(x[None], z, KERN["ls"], KERN["sf2"])[0]
         mean_ref = k @ sigma @ kzx @ ys / KERN["sn2"]
         var_ref = KERN["sf2"] - k @ np.linalg.solve(kzz, k) + k @ sigma @ k
-        mean, var = MB.predict(m, jnp.asarray(x))
-        np.testing.assert_allclose(float(mean[0]), mean_ref, rtol=1e-7, atol=1e-9)
-        np.testing.assert_allclose(float(var[0]), var_ref, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(float(mean[i, 0]), mean_ref, rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(float(var[i, 0]), var_ref, rtol=1e-6, atol=1e-9)
 
 
 def test_function_samples_have_the_posterior_mean_and_covariance():
@@ -97,7 +106,7 @@ def test_function_samples_have_the_posterior_mean_and_covariance():
     rng = np.random.default_rng(2)
     xs, ys = _data(rng, 40, 3)
     z = xs[:6]
-    m = MB.condition(jnp.asarray(z), jnp.ones(6, bool), _kernel("float64"), jnp.asarray(xs),
+    m = _condition(jnp.asarray(z), jnp.ones(6, bool), _kernel("float64"), jnp.asarray(xs),
                      jnp.asarray(ys), jnp.ones(40, bool))
     m = jax.tree_util.tree_map(lambda a: a[None], m)._replace(inducing=m.inducing,
                                                              inducing_mask=m.inducing_mask)
