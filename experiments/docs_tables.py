@@ -592,15 +592,18 @@ def model_table(task: str) -> str:
     with open(os.path.join(RESULTS, path)) as f:
         d = json.load(f)
     lines = ["| method | seeds reaching the threshold | environment steps to it, median | "
-             "wall time to it, median | final return, mean | P(better than the mean model) |",
-             "|---|---|---|---|---|---|"]
+             "wall time to it, median | final return, mean | P(better than the mean model) | "
+             "model error 1 − R², second update / last |",
+             "|---|---|---|---|---|---|---|"]
     for r in d["rows"]:
         wall = r.get("wall_to_threshold_median")
         p = r.get("p_improvement_over_mean")
+        err = (f"{r['model_error_second']:.3f} / {r['model_error_last']:.3f}"
+               if "model_error_last" in r else "–")
         lines.append(f"| {r['method']} | {r['seeds_reaching']}/{r['seeds']} | "
                      f"{_steps(r['steps_to_threshold_median'])} | "
                      f"{'–' if wall is None else f'{wall:.0f} s'} | {r['final_return_mean']:.1f} | "
-                     f"{'–' if p is None else f'{p:.2f}'} |")
+                     f"{'–' if p is None else f'{p:.2f}'} | {err} |")
     seeds = d["seeds"]
     lines.append("")
     lines.append(f"Held-out seeds {seeds[0]}–{seeds[-1]}; threshold {d['threshold']:g}, the mean "
@@ -613,6 +616,8 @@ def model_table(task: str) -> str:
                  "the threshold, on a 2-core CPU that other runs shared at times (an indication, "
                  "not a benchmark). P(better than the mean model): the probability that a seed's "
                  "final return under the choice beats one under the mean model (Mann–Whitney). "
+                 "Model error: the model's prediction of an update's new transitions before it "
+                 "took them in, 1 − R² over the observation's coordinates, median over seeds. "
                  + _source(path))
     return "\n".join(lines)
 

@@ -78,10 +78,13 @@ PAPER = tuple(f"{m}{end}" for end in ("", "_restart") for m in
 
 
 def overrides(task: str, settings: dict) -> dict:
+    """A run's config overrides: the preset's own values of the fields gp_model's preset tunes
+    (`study.preset_own`: the study does not start from its own earlier tuning), `BASE`, the
+    budget's updates and `settings`."""
     episodes = BASE[task]["episodes_per_update"]
     length = config_lib.PRESETS[task]["episode_length"]
     updates = BUDGETS[task] // (episodes * length) + 1
-    return {**BASE[task], "num_updates": updates, **settings}
+    return {**study.preset_own(task, METHOD), **BASE[task], "num_updates": updates, **settings}
 
 
 def score(records: dict) -> dict:
@@ -155,9 +158,14 @@ def report(task: str, out: str) -> None:
         if os.path.exists(p + ".npz"):
             with np.load(p + ".npz") as f:
                 curves[f"gp_model ({choice})"] = (f["steps"], np.asarray(f["return"], float))
+                error = np.asarray(f["model_error"], float)  # (seeds, updates)
             meta = study.read_json(p + ".json")
             rows.append(_row(f"gp_model ({choice})", *curves[f"gp_model ({choice})"], threshold,
                              meta["wall_s"], meta["seeds"]))
+            # the model's error on each update's new transitions before it took them in, 1 - R^2:
+            # the median over seeds, at the second update and at the last
+            rows[-1]["model_error_second"] = float(np.median(error[:, 1]))
+            rows[-1]["model_error_last"] = float(np.median(error[:, -1]))
     seeds = meta["seeds"]
     others = {}
     for name in (*BASELINES, *PAPER):
