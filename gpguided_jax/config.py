@@ -576,6 +576,12 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
         "guided_variance": {"learning_rate": 0.01},
         "guided_direction": {"learning_rate": 0.03, "discount_horizon": 0.5, "candidate_scale": 1.0},
         "gp_critic": {"critic_learning_rate": 0.03},
+        # experiments/model_study.py: its budget (2,000 steps, one episode an update), base
+        # settings and tuned ones (docs/model_based.md)
+        "gp_model": {"episodes_per_update": 1, "num_updates": 11, "init_log_std": 0.0,
+                     "min_std": 0.05, "eval_episodes": 10, "model_exploration": "thompson",
+                     "model_horizon": 2.0, "model_learning_rate": 0.03, "model_steps": 200,
+                     "model_inducing": 400},
     },
     "mountaincar-continuous": {  # the horizon in steps (the car's step counts as 1 s)
         "reinforce": {"learning_rate": 0.01, "discount_horizon": 30.0, "init_log_std": 0.0},

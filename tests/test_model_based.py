@@ -362,3 +362,39 @@ def test_a_smoothed_end_tends_to_the_hard_end_and_passes_a_gradient():
     finally:
         tasks._REGISTERED.pop("test:linear_end", None)
         tasks.make_task.cache_clear()
+
+
+def _model_study():
+    import importlib.util
+    import os
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    spec = importlib.util.spec_from_file_location(
+        "model_study", os.path.join(root, "experiments", "model_study.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module, os.path.join(root, "docs", "results", "model")
+
+
+def test_the_presets_hold_the_model_study_s_tuned_settings():
+    """`gpguided reproduce --preset <task> --methods gp_model` runs it as the study did: its base
+    settings, its budget's updates and the settings the tuning chose
+    (docs/results/model/<task>/tuning.json), and the study's runs start from the preset's own."""
+    import json
+    import os
+
+    study, results = _model_study()
+    for task in study.TASKS:
+        path = os.path.join(results, task, "tuning.json")
+        if not os.path.exists(path):
+            continue
+        with open(path) as f:
+            chosen = json.load(f)["chosen"]
+        expected = {**study.BASE[task], "num_updates": study.overrides(task, {})["num_updates"],
+                    **chosen}
+        assert C.METHOD_PRESETS[task]["gp_model"] == pytest.approx(expected), task
+        if task.startswith("inverted"):
+            continue  # building a brax task compiles its physics; the gymnax task checks the rest
+        # a run of the study gives the config the preset gives
+        cfg = C.preset(task, method="gp_model", **study.overrides(task, chosen))
+        assert cfg.to_json_dict() == C.preset(task, method="gp_model").to_json_dict()
