@@ -599,6 +599,10 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
         "guided_direction": {"learning_rate": 0.01, "discount_horizon": 2.0,
                              "inverse_temperature": 1.0},
         "gp_critic": {"critic_learning_rate": 0.003, "critic_steps": 10},
+        # experiments/model_study.py (docs/model_based.md): restarted episodes, 6,000 steps
+        "gp_model": {"episodes_per_update": 1, "num_updates": 7, "episode_end": "restart",
+                     "init_log_std": math.log(0.5), "min_std": 0.05, "eval_episodes": 5,
+                     "model_capacity": 3000, "model_horizon": 4.0, "model_exploration": "sample"},
     },
     "inverted-double-pendulum": {
         "reinforce": {"learning_rate": 0.01, "init_log_std": math.log(0.25)},
