@@ -41,8 +41,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import gpguided_jax  # noqa: E402
-from gpguided_jax import model_based, runtime, stats, study, tasks  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
+from gpguided_jax import model_based, runtime, stats, study, tasks  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 METHOD = "gp_model"
@@ -147,6 +147,7 @@ def _row(name, steps, ret, threshold, wall_s, seeds):
                 steps_to_threshold_median=float(np.median(reach[ok])) if ok.any() else None,
                 wall_to_threshold_median=float(np.median(wall_to[ok])) if ok.any() else None,
                 final_return_mean=float(ret[:, -1].mean()), env_steps=int(steps[-1]),
+                seeds_above_at_end=int(np.sum(ret[:, -1] >= threshold)),
                 wall_s_per_seed=float(per_seed))
 
 

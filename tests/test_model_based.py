@@ -15,7 +15,8 @@ import scipy.linalg
 
 from gpguided_jax import config as C
 from gpguided_jax import controllers as controllers_lib
-from gpguided_jax import hyperfit, kernels, methods, model_based as MB, rollouts, tasks
+from gpguided_jax import kernels, methods, rollouts, tasks
+from gpguided_jax import model_based as MB
 from gpguided_jax import train as T
 
 
@@ -253,9 +254,9 @@ def test_the_simulated_return_gradient_matches_finite_differences(exploration):
 
     p0 = (params0, hall0)
     g = jax.grad(f)(p0)
+    h = 1e-5
     for _ in range(3):
         d = jax.tree_util.tree_map(lambda p: jnp.asarray(rng.normal(size=p.shape)), p0)
-        h = 1e-5
         plus = f(jax.tree_util.tree_map(lambda p, v: p + h * v, p0, d))
         minus = f(jax.tree_util.tree_map(lambda p, v: p - h * v, p0, d))
         fd = (plus - minus) / (2 * h)
@@ -299,7 +300,7 @@ def test_the_controller_optimised_through_a_learned_model_approaches_the_lqr_gai
     actions, the linear controller optimised by L-BFGS through 30-step simulated roll-outs from
     the start distribution; its gain -du/dx at 0 is the LQR gain of scipy's discrete Riccati
     solver (the simulated cost is flat near it: 3% of gain is 0.1% of cost)."""
-    task = tasks.register(_linear_task())
+    tasks.register(_linear_task())
     try:
         cfg = C.make_config(env="test:linear", method="gp_model", controller="linear",
                             episode_length=30, num_updates=1, episodes_per_update=2,
