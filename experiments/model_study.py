@@ -167,6 +167,12 @@ def report(task: str, out: str) -> None:
             # the median over seeds, at the second update and at the last
             rows[-1]["model_error_second"] = float(np.median(error[:, 1]))
             rows[-1]["model_error_last"] = float(np.median(error[:, -1]))
+            # the simulated return after the last update's optimisation, median over seeds, and
+            # its ceiling where the reward is bounded per step (brax's pendulum: 1 per step)
+            run = os.path.join(out, "runs", choice, "results.npz")
+            if os.path.exists(run):
+                with np.load(run) as f:
+                    rows[-1]["model_return_last"] = float(np.median(f["model_return"][0][:, -1]))
     seeds = meta["seeds"]
     others = {}
     for name in (*BASELINES, *PAPER):
@@ -185,7 +191,8 @@ def report(task: str, out: str) -> None:
                      key=lambda n: study.final(others[n][1]).mean(), default=None)
     for name in (*BASELINES, paper_best):
         if name is not None and name in others:
-            rows.append(_row(name, *others[name], threshold, seeds))
+            steps, ret, wall_s = others[name]
+            rows.append(_row(name, steps, ret, threshold, wall_s, seeds))
             curves[name] = others[name][:2]
     # each exploration choice against the mean model: P(choice > mean) of the final returns
     mean_key = "gp_model (mean)"
@@ -210,6 +217,8 @@ def report(task: str, out: str) -> None:
     plt.close(fig)
     study.write_json(os.path.join(out, "heldout_table.json"), {
         "task": task, "threshold": threshold, "seeds": seeds, "budget": BUDGETS[task],
+        "horizon_steps": int(round(config_lib.preset(task, method=METHOD).model_horizon
+                                   / tasks.make_task(config_lib.PRESETS[task]["env"]).dt)),
         "paper_best": paper_best, "rows": rows})
     study.log(f"wrote {figure} and {out}/heldout_table.json")
 
