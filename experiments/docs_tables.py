@@ -593,8 +593,9 @@ def model_table(task: str) -> str:
         d = json.load(f)
     lines = ["| method | seeds reaching the threshold | environment steps to it, median | "
              "wall time to it, median | final return, mean | seeds above it at the end | "
-             "P(better than the mean model) | model error 1 − R², second update / last |",
-             "|---|---|---|---|---|---|---|---|"]
+             "P(better than the mean model) | model error 1 − R², second update / last | "
+             "simulated return, last update |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in d["rows"]:
         wall = r.get("wall_to_threshold_median")
         p = r.get("p_improvement_over_mean")
@@ -604,7 +605,8 @@ def model_table(task: str) -> str:
                      f"{_steps(r['steps_to_threshold_median'])} | "
                      f"{'–' if wall is None else f'{wall:.0f} s'} | {r['final_return_mean']:.1f} | "
                      f"{r['seeds_above_at_end']}/{r['seeds']} | "
-                     f"{'–' if p is None else f'{p:.2f}'} | {err} |")
+                     f"{'–' if p is None else f'{p:.2f}'} | {err} | "
+                     + (f"{r['model_return_last']:.1f} |" if "model_return_last" in r else "– |"))
     seeds = d["seeds"]
     lines.append("")
     lines.append(f"Held-out seeds {seeds[0]}–{seeds[-1]}; threshold {d['threshold']:g}, the mean "
@@ -620,6 +622,9 @@ def model_table(task: str) -> str:
                  "final return under the choice beats one under the mean model (Mann–Whitney). "
                  "Model error: the model's prediction of an update's new transitions before it "
                  "took them in, 1 − R² over the observation's coordinates, median over seeds. "
+                 "Simulated return: the mean return of the model's particle roll-outs over the "
+                 f"planning horizon ({d['horizon_steps']} steps) after the last update's "
+                 "optimisation, median over seeds. "
                  + _source(path))
     return "\n".join(lines)
 
