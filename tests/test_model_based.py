@@ -229,12 +229,14 @@ def _pendulum_v1_model():
     xs = jax.vmap(task.features)(obs, a)
     data = MB.take_in(MB.init(prog, None, cfg), xs, MB.targets_of(task, obs, nxt),
                       jnp.ones(obs.shape[0], bool))
-    data = data._replace(log_kernels=MB.refit(jax.random.key(5), data, subset_size=100,
-                                              num_steps=30, first=True))
-    model, mean = MB.build(data, cfg.model_inducing)
+    refit = jax.jit(MB.refit, static_argnames=("subset_size", "num_steps"))
+    data = data._replace(log_kernels=refit(jax.random.key(5), data, subset_size=100,
+                                           num_steps=30, first=True))
+    model, mean = jax.jit(MB.build, static_argnums=1)(data, cfg.model_inducing)
     return cfg, prog, data, model, mean
 
 
+@pytest.mark.xdist_group("model_pendulum_v1")  # one worker builds the model both cases read
 @pytest.mark.parametrize("exploration", ["sample", "optimistic"])
 def test_the_simulated_return_gradient_matches_finite_differences(exploration):
     """jax.grad of the simulated return (particles, sampled functions and transition noise held
@@ -249,11 +251,12 @@ def test_the_simulated_return_gradient_matches_finite_differences(exploration):
                                    data.hallucination)
     optimistic = exploration == "optimistic"
 
+    @jax.jit
     def f(p):
         return MB.simulate(prog, model, mean, plan, p[0], p[1] if optimistic else None, 1.5)
 
     p0 = (params0, hall0)
-    g = jax.grad(f)(p0)
+    g = jax.jit(jax.grad(f))(p0)
     h = 1e-5
     for _ in range(3):
         d = jax.tree_util.tree_map(lambda p: jnp.asarray(rng.normal(size=p.shape)), p0)
@@ -346,18 +349,25 @@ def test_a_smoothed_end_tends_to_the_hard_end_and_passes_a_gradient():
         nxt = LQR["a"] * x + LQR["b"] * u[:, None]
         data = MB.take_in(MB.init(prog, None, cfg), jnp.concatenate([x, u[:, None]], 1),
                           MB.targets_of(task, x, nxt), jnp.ones(60, bool))
-        data = data._replace(log_kernels=MB.refit(jax.random.key(1), data, subset_size=60,
-                                                  num_steps=30, first=True))
-        model, mean = MB.build(data, 30)
+        refit = jax.jit(MB.refit, static_argnames=("subset_size", "num_steps"))
+        data = data._replace(log_kernels=refit(jax.random.key(1), data, subset_size=60,
+                                               num_steps=30, first=True))
+        model, mean = jax.jit(MB.build, static_argnums=1)(data, 30)
         plan = MB.make_plan(prog, cfg, model, jax.random.key(2), "mean", 8, 10)
         params = controllers_lib.LinearParams(jnp.array([0.01, 0.02]))
         hard_prog = prog._replace(task=task._replace(end_margin=None))
-        hard = MB.simulate(hard_prog, model, mean, plan, params)
-        soft = MB.simulate(prog, model, mean, plan, params, end_softness=1e-6)
+        def hard_return(p):
+            return MB.simulate(hard_prog, model, mean, plan, p)
+
+        def soft_return(p, softness):
+            return MB.simulate(prog, model, mean, plan, p, end_softness=softness)
+
+        hard = jax.jit(hard_return)(params)
+        soft = jax.jit(soft_return)(params, 1e-6)
         assert 1.0 < float(hard) < 10.0  # some particles end within the horizon, not all at once
         np.testing.assert_allclose(float(soft), float(hard), rtol=1e-6)
-        g_hard = jax.grad(lambda p: MB.simulate(hard_prog, model, mean, plan, p))(params)
-        g_soft = jax.grad(lambda p: MB.simulate(prog, model, mean, plan, p, end_softness=0.1))(params)
+        g_hard = jax.jit(jax.grad(hard_return))(params)
+        g_soft = jax.jit(jax.grad(soft_return))(params, 0.1)
         assert float(jnp.max(jnp.abs(g_hard.weights))) == 0.0
         assert float(jnp.max(jnp.abs(g_soft.weights))) > 1e-3
     finally:
