@@ -399,16 +399,21 @@ def standard_critic_table(task: str) -> str:
     return "\n".join(lines)
 
 
+def _settings(settings: dict) -> str:
+    """A tuning record's settings as 'field=value, ...' (floats to 4 significant digits)."""
+    return ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                     for k, v in settings.items())
+
+
 def standard_tuning_table(task: str) -> str:
     """`experiments/standard_tasks.py tune`: every configuration tried on the tuning seeds."""
     path = os.path.join("standard", task, "tuning.json")
     with open(os.path.join(RESULTS, path)) as f:
         d = json.load(f)
-    fmt = lambda v: f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
     lines = ["| method | settings | final return (tuning seeds) | chosen |", "|---|---|---|---|"]
     for name, r in d["methods"].items():
         for t in r["tried"]:
-            settings = ", ".join(f"{k}={fmt(v)}" for k, v in t["settings"].items())
+            settings = _settings(t["settings"])
             lines.append(f"| {name} | {settings} | {t['score']:.1f} | "
                          f"{'yes' if t['settings'] == r['chosen'] else ''} |")
     # every baseline configuration of the grid runs as the held-out run does (same batch sizes)
@@ -634,10 +639,9 @@ def model_tuning_table(task: str) -> str:
     path = os.path.join("model", task, "tuning.json")
     with open(os.path.join(RESULTS, path)) as f:
         d = json.load(f)
-    fmt = lambda v: f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
     lines = ["| settings | score (tuning seeds) | final return | chosen |", "|---|---|---|---|"]
     for t in d["tried"]:
-        settings = ", ".join(f"{k}={fmt(v)}" for k, v in t["settings"].items()) or "(the defaults)"
+        settings = _settings(t["settings"]) or "(the defaults)"
         lines.append(f"| {settings} | {t['score']:.1f} | {t['final']:.1f} | "
                      f"{'yes' if t['settings'] == d['chosen'] else ''} |")
     lines.append("")

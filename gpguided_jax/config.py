@@ -28,6 +28,10 @@ AGE_FUNCTIONS = ("exp", "logit")
 OPTIMIZERS = ("sgd", "adam")
 DTYPES = ("float64", "float32")
 EPISODE_ENDS = ("mask", "restart")
+# gp_model's choices (`gpguided_jax.model_based`): how the model's uncertainty enters its
+# simulated roll-outs, and the controller's optimiser
+MODEL_EXPLORATIONS = ("mean", "sample", "thompson", "optimistic")
+MODEL_OPTIMIZERS = ("adam", "lbfgs")
 
 STATIC_FIELDS = (
     "method",
@@ -330,12 +334,17 @@ def _integer(v) -> bool:
 def _check_choices_and_sizes(cfg: TrainConfig) -> None:
     """The static fields: the named choices, the sizes and the durations."""
     for f, choices in (("controller", CONTROLLERS), ("age_fn", AGE_FUNCTIONS),
-                       ("optimizer", OPTIMIZERS), ("dtype", DTYPES)):
+                       ("optimizer", OPTIMIZERS), ("dtype", DTYPES),
+                       ("model_exploration", MODEL_EXPLORATIONS),
+                       ("model_optimizer", MODEL_OPTIMIZERS)):
         if getattr(cfg, f) not in choices:
-            what = {"age_fn": "age function"}.get(f, f)
+            what = {"age_fn": "age function", "model_exploration": "model exploration",
+                    "model_optimizer": "model optimiser"}.get(f, f)
             _fail(f, f"unknown {what} {getattr(cfg, f)!r}; choose from {choices}")
     for f in ("num_updates", "episodes_per_update", "episode_length", "gp_capacity",
-              "hyperfit_samples", "hyperfit_steps", "hyperfit_subset", "num_candidates", "gp_stride"):
+              "hyperfit_samples", "hyperfit_steps", "hyperfit_subset", "num_candidates", "gp_stride",
+              "model_capacity", "model_inducing", "model_fit_subset", "model_fit_steps",
+              "model_particles", "model_steps"):
         v = getattr(cfg, f)
         if not _integer(v) or v < 1:
             _fail(f, f"must be a positive integer, got {v!r}")
@@ -347,8 +356,10 @@ def _check_choices_and_sizes(cfg: TrainConfig) -> None:
         v = getattr(cfg, f)
         if not _integer(v) or v < 0:
             _fail(f, f"must be an integer >= 0, got {v!r}")
-    if not isinstance(cfg.success_hold_time, (int, float)) or not cfg.success_hold_time > 0:
-        _fail("success_hold_time", f"must be > 0 seconds, got {cfg.success_hold_time!r}")
+    for f in ("success_hold_time", "model_horizon"):
+        v = getattr(cfg, f)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+            _fail(f, f"must be > 0 seconds, got {v!r}")
     if cfg.episode_end not in EPISODE_ENDS:
         _fail("episode_end", f"unknown episode end {cfg.episode_end!r}; choose from {EPISODE_ENDS}")
 

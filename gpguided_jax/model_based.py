@@ -54,10 +54,10 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from gpguided_jax import hyperfit, kernels, methods
+from gpguided_jax import config, hyperfit, kernels, methods
 
-EXPLORATIONS = ("mean", "sample", "thompson", "optimistic")
-OPTIMIZERS = ("adam", "lbfgs")
+EXPLORATIONS = config.MODEL_EXPLORATIONS
+OPTIMIZERS = config.MODEL_OPTIMIZERS
 JITTER = 1e-6  # relative diagonal jitter of K_ZZ
 RECORDS = ("model_return", "model_gain", "model_error", "model_std", "model_lengthscale_action",
            "model_data")
@@ -248,18 +248,21 @@ def _k_star(model: SparseModel, x):
     return jax.vmap(one)(model.kernels)
 
 
-def predict(model: SparseModel, x):
-    """The latent predictive mean and variance of every output at one input x: (E,), (E,)."""
-    ks = _k_star(model, x)
-    mean = jnp.sum(ks * model.weights, axis=-1)
-
+def _variance(model: SparseModel, ks):
+    """The latent predictive variance of every output, (E,), from its kernel row ks (E, M)."""
     def var(k, chol, chol_b, kern):
         p = jax.scipy.linalg.solve_triangular(chol, k, lower=True)
         q = jax.scipy.linalg.solve_triangular(chol_b, p, lower=True)
         return kern.signal_variance - jnp.sum(p * p) + jnp.sum(q * q)
 
     v = jax.vmap(var)(ks, model.chol_zz, model.chol_b, model.kernels)
-    return mean, jnp.maximum(v, 0.0)
+    return jnp.maximum(v, 0.0)
+
+
+def predict(model: SparseModel, x):
+    """The latent predictive mean and variance of every output at one input x: (E,), (E,)."""
+    ks = _k_star(model, x)
+    return jnp.sum(ks * model.weights, axis=-1), _variance(model, ks)
 
 
 def sample_weights(model: SparseModel, key, shape=()):
@@ -341,7 +344,7 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
             ks = _k_star(model, x)
             delta = jnp.sum(ks * w, axis=-1) + target_mean + noise_std * eps_t
             if hallucination is not None:
-                _, var = predict(model, x)
+                var = _variance(model, ks)
                 eta = jax.vmap(lambda p: controller.apply(p, obs))(hallucination) / controller.u_max
                 delta = delta + beta * jnp.sqrt(var) * eta
             nxt = next_of(task, obs, delta)
@@ -473,19 +476,6 @@ def check(cfg) -> None:
     if task.reward_fn is None:
         raise ValueError(f"TrainConfig.env: gp_model plans with the task's reward as a function of "
                          f"the transition, which {cfg.env} does not state (tasks.Task.reward_fn)")
-    if cfg.model_optimizer not in OPTIMIZERS:
-        raise ValueError(f"TrainConfig.model_optimizer: unknown optimiser {cfg.model_optimizer!r}; "
-                         f"choose from {OPTIMIZERS}")
-    if cfg.model_exploration not in EXPLORATIONS:
-        raise ValueError(f"TrainConfig.model_exploration: unknown choice {cfg.model_exploration!r}; "
-                         f"choose from {EXPLORATIONS}")
-    for f in ("model_capacity", "model_inducing", "model_fit_subset", "model_fit_steps",
-              "model_particles", "model_steps"):
-        v = getattr(cfg, f)
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise ValueError(f"TrainConfig.{f}: must be a positive integer, got {v!r}")
-    if not isinstance(cfg.model_horizon, (int, float)) or not cfg.model_horizon > 0:
-        raise ValueError(f"TrainConfig.model_horizon: must be > 0 seconds, got {cfg.model_horizon!r}")
     if cfg.hold_time != 0.0:
         raise ValueError("TrainConfig.hold_time: gp_model models one control step; it takes no held "
                          "actions")
