@@ -41,6 +41,9 @@ The GP's uncertainty guides exploration through the simulated roll-outs, one cho
               beta sigma(x) eta(z), eta in [-1, 1]^E a second controller optimised jointly with
               the policy to maximise the same return (optimism within the model's confidence).
 
+With `hold_time` > 0 the model is of one decision of `prog.hold` control steps (`decisions`), and
+the simulated roll-outs step one decision at a time (`simulate`).
+
 The controller acts deterministically in the simulated roll-outs. In the real ones it acts with
 the policy's Gaussian noise: exp(init_log_std) on the first update (the exploratory episode that
 gives the model its first data), the floor `min_std` from then on.
@@ -322,7 +325,9 @@ def make_plan(prog, cfg, model: SparseModel, key, exploration: str, num_particle
 def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_params,
              hallucination=None, beta=None, end_softness=0.1):
     """The mean over particles of the simulated returns: undiscounted sums of the task's reward
-    over the plan's steps, each weighed by the particle's probability of being alive. A task
+    over the plan's steps, each weighed by the particle's probability of being alive. A model step
+    is one decision of `prog.hold` control steps; its reward is `prog.hold` times the reward of
+    the transition to the decision's end (the steps in between are not simulated). A task
     with an end margin (`Task.end_margin`) ends a step with probability sigmoid(margin /
     `end_softness`), a smoothed end whose gradient reaches the controller where the hard end's
     is 0 (its reward, where the end enters it, takes that probability too); a task with only
@@ -330,6 +335,7 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
     optimistic choice)."""
     task, controller = prog.task, prog.controller
     noise_std = jnp.sqrt(model.kernels.noise_variance)  # (E,)
+    hold = prog.hold
 
     def end_probability(nxt):
         if task.end_margin is not None:
@@ -349,9 +355,9 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
                 delta = delta + beta * jnp.sqrt(var) * eta
             nxt = next_of(task, obs, delta)
             if task.end_fn is None:
-                return (nxt, alive), task.reward_fn(obs, a, nxt)
+                return (nxt, alive), hold * task.reward_fn(obs, a, nxt)
             p_end = end_probability(nxt)
-            return (nxt, alive * (1.0 - p_end)), alive * task.reward_fn(obs, a, nxt, p_end)
+            return (nxt, alive * (1.0 - p_end)), hold * alive * task.reward_fn(obs, a, nxt, p_end)
 
         _, rewards = jax.lax.scan(step, (obs0, jnp.ones((), obs0.dtype)), eps)
         return jnp.sum(rewards)
@@ -402,15 +408,36 @@ def optimise(prog, model, target_mean, plan, params, hallucination, *, num_steps
 
 
 def plan_steps(prog, cfg) -> int:
-    """The simulated roll-outs' steps: `model_horizon` seconds at the task's control interval."""
-    return max(1, int(round(prog.config.model_horizon / prog.task.dt)))
+    """The simulated roll-outs' steps: `model_horizon` seconds in decisions of `prog.hold` control
+    intervals."""
+    dt = config.control_interval(prog.config) * prog.hold
+    return max(1, int(round(prog.config.model_horizon / dt)))
+
+
+def decisions(hold: int, obs, next_obs, actions, alive=None, ends=None):
+    """The transitions the model takes in from a batch of episodes (N, T, ...): one per decision
+    of `hold` control steps, from the observation the action was chosen in to the one at the end
+    of its hold (a last, incomplete hold is dropped). Returns (obs, next_obs, actions, valid),
+    `valid` (N, T // hold) False for a decision not taken wholly before its episode's end, or
+    (restarted episodes, `ends`) one across an end, whose next observation is another episode's."""
+    n, t = actions.shape[:2]
+    k = t // hold
+    valid = jnp.ones((n, t), bool) if alive is None else alive
+    if ends is not None:  # a restarted episode's last step leads to the next one's start
+        valid = valid & ~ends
+    if hold == 1:
+        return obs, next_obs, actions, valid
+    first = lambda v: v[:, : k * hold: hold]  # noqa: E731
+    blocks = lambda v: v[:, : k * hold].reshape((n, k, hold) + v.shape[2:])  # noqa: E731
+    return (first(obs), blocks(next_obs)[:, :, -1], first(actions),
+            jnp.all(blocks(valid), axis=2))
 
 
 def init(prog, key, cfg):
     del key
     task, static = prog.task, prog.config
-    capacity = min(static.model_capacity,
-                   static.num_updates * static.episodes_per_update * static.episode_length)
+    capacity = min(static.model_capacity, static.num_updates * static.episodes_per_update
+                   * (static.episode_length // prog.hold))
     zeros = prog.controller.init(prog.dtype)
     hallucination = jax.tree_util.tree_map(lambda a: jnp.zeros((task.obs_dim,) + a.shape, a.dtype), zeros)
     return empty_data(capacity, task.feature_dim, task.obs_dim, prog.dtype, hallucination)
@@ -424,12 +451,11 @@ def update(prog, cfg, state, batch):
     data: ModelData = state.method_state
     eps = batch.episodes
     obs, nxt, acts = eps.states, eps.next_states, eps.actions
+    obs, nxt, acts, valid = decisions(prog.hold, obs, nxt, acts, eps.alive, eps.ends)
     d = task.feature_dim
     xs = jax.vmap(lambda s, a: rollouts.features(prog, s, a))(obs, acts).reshape(-1, d)
     ys = targets_of(task, obs, nxt).reshape(-1, task.obs_dim)
-    valid = (jnp.ones(acts.shape, bool) if eps.alive is None else eps.alive).reshape(-1)
-    if eps.ends is not None:  # a restarted episode's last step leads to the next one's start
-        valid = valid & ~eps.ends.reshape(-1)
+    valid = valid.reshape(-1)
     key = jax.random.fold_in(state.key, 7)
     k_fit, k_plan, k_err = jax.random.split(key, 3)
 
@@ -470,15 +496,16 @@ def update(prog, cfg, state, batch):
 
 
 def check(cfg) -> None:
-    from gpguided_jax import tasks
+    from gpguided_jax import exploration, tasks
 
     task = tasks.make_task(cfg.env)
     if task.reward_fn is None:
         raise ValueError(f"TrainConfig.env: gp_model plans with the task's reward as a function of "
                          f"the transition, which {cfg.env} does not state (tasks.Task.reward_fn)")
-    if cfg.hold_time != 0.0:
-        raise ValueError("TrainConfig.hold_time: gp_model models one control step; it takes no held "
-                         "actions")
+    hold = exploration.hold_steps(cfg.hold_time, config.control_interval(cfg))
+    if hold > cfg.episode_length:
+        raise ValueError(f"TrainConfig.hold_time: a hold of {hold} control steps is longer than "
+                         f"the episode ({cfg.episode_length}); gp_model models one decision")
 
 
 methods.register(methods.Method(

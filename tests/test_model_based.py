@@ -144,6 +144,34 @@ def test_the_buffer_keeps_the_newest_transitions_and_the_targets_wrap_angles():
     np.testing.assert_allclose(np.asarray(MB.next_of(task, obs, d)), np.asarray(nxt), atol=1e-12)
 
 
+def test_held_actions_give_one_transition_per_decision():
+    """hold = 3 over 10 steps: decisions at 0, 3, 6 (the last step's incomplete hold dropped),
+    each from its first observation to the next observation of its last step, valid only if the
+    episode is alive through the hold and no restart falls inside it (a loop in NumPy)."""
+    rng = np.random.default_rng(3)
+    n, t, hold = 2, 10, 3
+    obs = rng.normal(size=(n, t, 2))
+    nxt = rng.normal(size=(n, t, 2))
+    acts = np.repeat(rng.normal(size=(n, 4)), hold, axis=1)[:, :t]
+    alive = np.ones((n, t), bool)
+    alive[0, 5:] = False  # episode 0 ends inside its second hold
+    ends = np.zeros((n, t), bool)
+    ends[1, 7] = True  # a restart inside episode 1's third hold
+    for use_ends in (False, True):
+        o, x, a, v = MB.decisions(hold, obs, nxt, acts, alive, ends if use_ends else None)
+        for i in range(n):
+            for j, s in enumerate(range(0, t - hold + 1, hold)):
+                np.testing.assert_array_equal(np.asarray(o[i, j]), obs[i, s])
+                np.testing.assert_array_equal(np.asarray(x[i, j]), nxt[i, s + hold - 1])
+                assert float(a[i, j]) == acts[i, s]
+                ok = alive[i, s:s + hold].all() and not (use_ends and ends[i, s:s + hold].any())
+                assert bool(v[i, j]) == ok, (i, j, use_ends)
+        assert o.shape == (n, t // hold, 2)
+    # without a hold: every step, the restart's step invalid
+    _, _, _, v = MB.decisions(1, obs, nxt, acts, alive, ends)
+    np.testing.assert_array_equal(np.asarray(v), alive & ~ends)
+
+
 # ------------------------------------------------------------------------- the stated rewards
 
 
