@@ -9,13 +9,14 @@ study's held-out runs (docs/results/standard/<task>/heldout), on the same held-o
 Stages, per task; each writes under --out (default docs/results/model/<task>):
 
 ``tune``    Tuning seeds (100, 101; never reported): coordinate search over `GRIDS` (written
-            before any run), from `BASE`'s settings. The score is the mean return of the
-            deterministic policy over the evaluations in the second half of the budget (mean over
-            seeds): it rewards reaching the threshold early and staying there. Writes tuning.json.
-``heldout`` Held-out seeds (1000-1009): gp_model with the tuned settings under each of the
-            model's exploration choices (`model_based.EXPLORATIONS`; --only: which), each alone
-            through `gpguided reproduce`'s driver. Writes heldout/<choice>.npz and .json (resumes
-            as the standard tasks' study does).
+            before any run), from `BASE`'s settings. The score is the run's measure (`MEASURES`:
+            the deterministic policy's return, its success rate on the swing-up) over the
+            evaluations in the second half of the budget (mean over seeds): it rewards reaching
+            the threshold early and staying there. Writes tuning.json.
+``heldout`` Held-out seeds (1000-1009; 1000-1019 for the swing-up): gp_model with the tuned
+            settings under each of the model's exploration choices (`model_based.EXPLORATIONS`;
+            --only: which), each alone through `gpguided reproduce`'s driver. Writes
+            heldout/<choice>.npz and .json (resumes as the standard tasks' study does).
 ``report``  heldout_table.json (seeds reaching the threshold, environment steps and wall time to
             it, final return, and each choice's probability of improvement over the mean model)
             and the figure (return against environment steps, log axis, beside SAC, PPO and the
@@ -25,6 +26,7 @@ Usage:
   python experiments/model_study.py tune --task pendulum-v1
   python experiments/model_study.py heldout --task pendulum-v1
   python experiments/model_study.py report --task pendulum-v1
+  (--task inverted-pendulum, swingup: the same three stages)
 """
 
 from __future__ import annotations
@@ -42,14 +44,15 @@ import numpy as np  # noqa: E402
 
 import gpguided_jax  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
-from gpguided_jax import model_based, runtime, stats, study, tasks  # noqa: E402
+from gpguided_jax import exploration, model_based, runtime, stats, study, tasks  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 METHOD = "gp_model"
-TASKS = ("pendulum-v1", "inverted-pendulum")
+TASKS = ("pendulum-v1", "inverted-pendulum", "swingup")
 # learning steps of a run: the aim's budget (2,000 on Pendulum-v1), one episode an update, and one
 # more update whose evaluation is that of the policy after the whole budget
-BUDGETS = {"pendulum-v1": 2000, "inverted-pendulum": 6000}
+# (the swing-up: the aim's 10 episodes of 900 steps)
+BUDGETS = {"pendulum-v1": 2000, "inverted-pendulum": 6000, "swingup": 9000}
 # the settings every run starts from: one episode an update; the first episode's noise is half
 # the torque range, the floor after it (`model_based` notes)
 # (brax's inverted pendulum: episodes restarted where they end, so that every slot is a step, as
@@ -58,7 +61,11 @@ BASE = {"pendulum-v1": dict(episodes_per_update=1, init_log_std=0.0, min_std=0.0
                             eval_episodes=10),
         "inverted-pendulum": dict(episodes_per_update=1, episode_end="restart",
                                   init_log_std=math.log(0.5), min_std=0.05, eval_episodes=5,
-                                  model_capacity=3000, model_horizon=8.0)}
+                                  model_capacity=3000, model_horizon=8.0),
+        # the swing-up: the controller decides at 10 Hz and holds its action, as PILCO's does, so
+        # that the model is of one decision; the simulated roll-outs as long as the episode
+        "swingup": dict(episodes_per_update=1, hold_time=0.1, init_log_std=math.log(2.0),
+                        min_std=0.05, eval_episodes=10, model_horizon=4.5)}
 # (parameter, values) per stage, applied over the best so far (its default between the values):
 # the exploration choice, the simulated horizon (s; default 4), the Adam step (0.01), the
 # optimiser steps per update (100), the inducing inputs (200) and L-BFGS in place of Adam
@@ -70,7 +77,17 @@ GRIDS = {"pendulum-v1": [("model_exploration", list(model_based.EXPLORATIONS)),
                          ("model_optimizer", ["lbfgs"])],
          # a smaller grid where a run costs more: the exploration choice and the horizon (8 s)
          "inverted-pendulum": [("model_exploration", list(model_based.EXPLORATIONS)),
-                               ("model_horizon", [4.0, 16.0])]}
+                               ("model_horizon", [4.0, 16.0])],
+         # the swing-up (4.5 s and 0.1 s held in BASE): the exploration choice, the horizon, the
+         # hold, the inducing inputs and the optimiser's steps
+         "swingup": [("model_exploration", list(model_based.EXPLORATIONS)),
+                     ("model_horizon", [3.0, 6.0]),
+                     ("hold_time", [0.05, 0.2]),
+                     ("model_inducing", [100, 400]),
+                     ("model_steps", [50, 200])]}
+# what a run is measured by: the deterministic policy's evaluation return against the task's
+# threshold, or (the swing-up) its success rate against the aim's 90%
+MEASURES = {"swingup": ("eval_success_rate", 0.9, "success rate")}
 STANDARD = os.path.join(ROOT, "docs", "results", "standard")
 BASELINES = ("sac", "ppo")
 PAPER = tuple(f"{m}{end}" for end in ("", "_restart") for m in
@@ -87,10 +104,26 @@ def overrides(task: str, settings: dict) -> dict:
     return {**study.preset_own(task, METHOD), **BASE[task], "num_updates": updates, **settings}
 
 
-def score(records: dict) -> dict:
-    ret = np.asarray(records["eval_return"], float)  # (seeds, updates)
-    half = ret.shape[1] // 2
-    return {"score": float(ret[:, half:].mean()), "final": float(ret[:, -1].mean())}
+def measure(task: str) -> tuple[str, float, str]:
+    """(the record a run is measured by, the level to reach, its name)."""
+    return MEASURES.get(task, ("eval_return", tasks.THRESHOLDS[config_lib.PRESETS[task]["env"]],
+                               "return"))
+
+
+def heldout_seeds(task: str) -> list[int]:
+    """The held-out seeds: 1000-1009, and 1000-1019 for the swing-up."""
+    return list(range(1000, 1020)) if task == "swingup" else list(study.HELDOUT_SEEDS)
+
+
+def score_of(task: str):
+    record = measure(task)[0]
+
+    def score(records: dict) -> dict:
+        ret = np.asarray(records[record], float)  # (seeds, updates)
+        half = ret.shape[1] // 2
+        return {"score": float(ret[:, half:].mean()), "final": float(ret[:, -1].mean())}
+
+    return score
 
 
 def tune(task: str, out: str) -> None:
@@ -105,7 +138,7 @@ def tune(task: str, out: str) -> None:
             done = study.read_json(runs_path, {})
             key = json.dumps(overrides(task, c), sort_keys=True)
             if key not in done:
-                done[key] = study.sweep_stage([overrides(task, c)], score, method=METHOD,
+                done[key] = study.sweep_stage([overrides(task, c)], score_of(task), method=METHOD,
                                               preset=task, seeds=study.TUNING_SEEDS,
                                               progress=study.log)[0]
                 study.write_json(runs_path, done)
@@ -131,7 +164,7 @@ def heldout(task: str, out: str, seeds, only) -> None:
         run = study.run_method(task, METHOD, seeds, os.path.join(out, "runs", choice),
                                overrides(task, settings), chunk_size=100)
         os.makedirs(os.path.dirname(path), exist_ok=True)
-        np.savez(path + ".npz", steps=run.env_steps, **{"return": run.records["eval_return"]},
+        np.savez(path + ".npz", steps=run.env_steps, measure=run.records[measure(task)[0]],
                  model_error=run.records["model_error"])
         study.write_json(path + ".json", {**meta, "wall_s": run.wall_s})
 
@@ -146,19 +179,57 @@ def _row(name, steps, ret, threshold, wall_s, seeds):
                 steps_to_threshold=[None if not f else int(v) for v, f in zip(reach, ok)],
                 steps_to_threshold_median=float(np.median(reach[ok])) if ok.any() else None,
                 wall_to_threshold_median=float(np.median(wall_to[ok])) if ok.any() else None,
-                final_return_mean=float(ret[:, -1].mean()), env_steps=int(steps[-1]),
+                final_mean=float(ret[:, -1].mean()), env_steps=int(steps[-1]),
                 seeds_above_at_end=int(np.sum(ret[:, -1] >= threshold)),
                 wall_s_per_seed=float(per_seed))
 
 
+def _horizon_steps(task: str) -> int:
+    """The tuned simulated roll-outs' steps (decisions of the hold)."""
+    cfg = config_lib.preset(task, method=METHOD)
+    dt = config_lib.control_interval(cfg)
+    return int(round(cfg.model_horizon / (dt * exploration.hold_steps(cfg.hold_time, dt))))
+
+
+def _others(task: str, seeds: list) -> dict:
+    """The baselines' and the paper's methods' held-out curves on these seeds (the swing-up's: on
+    those of them its study ran): name -> (steps, curves (seeds, evaluations), wall seconds)."""
+    others = {}
+    if task == "swingup":
+        path = os.path.join(ROOT, "docs", "results", "swingup", "heldout")
+        meta = study.read_json(path + ".json")
+        if not set(meta["seeds"]) <= set(seeds):
+            return others
+        with np.load(path + ".npz") as f:
+            for name in meta["wall_s"]:
+                steps, ret = f[f"{name}_steps"], np.asarray(f[f"{name}_success"], float)
+                if name in BASELINES:  # brax evaluates the initial policy first, at 0 steps
+                    steps, ret = steps[1:], ret[:, 1:]
+                others[name] = (steps, ret, meta["wall_s"][name])
+        return others
+    for name in (*BASELINES, *PAPER):
+        p = os.path.join(STANDARD, task, "heldout", name)
+        if not os.path.exists(p + ".npz"):
+            continue
+        with np.load(p + ".npz") as f:
+            steps, ret = f["steps"], np.asarray(f["return"], float)
+        meta = study.read_json(p + ".json")
+        if meta["seeds"] != seeds:
+            continue
+        if name in BASELINES:  # brax evaluates the initial policy first, at 0 steps
+            steps, ret = steps[1:], ret[:, 1:]
+        others[name] = (steps, ret, meta["wall_s"])
+    return others
+
+
 def report(task: str, out: str) -> None:
-    threshold = tasks.THRESHOLDS[config_lib.PRESETS[task]["env"]]
+    record, threshold, measure_name = measure(task)
     rows, curves = [], {}
     for choice in model_based.EXPLORATIONS:
         p = os.path.join(out, "heldout", choice)
         if os.path.exists(p + ".npz"):
             with np.load(p + ".npz") as f:
-                curves[f"gp_model ({choice})"] = (f["steps"], np.asarray(f["return"], float))
+                curves[f"gp_model ({choice})"] = (f["steps"], np.asarray(f["measure"], float))
                 error = np.asarray(f["model_error"], float)  # (seeds, updates)
             meta = study.read_json(p + ".json")
             rows.append(_row(f"gp_model ({choice})", *curves[f"gp_model ({choice})"], threshold,
@@ -174,19 +245,7 @@ def report(task: str, out: str) -> None:
                 with np.load(run) as f:
                     rows[-1]["model_return_last"] = float(np.median(f["model_return"][0][:, -1]))
     seeds = meta["seeds"]
-    others = {}
-    for name in (*BASELINES, *PAPER):
-        p = os.path.join(STANDARD, task, "heldout", name)
-        if not os.path.exists(p + ".npz"):
-            continue
-        with np.load(p + ".npz") as f:
-            steps, ret = f["steps"], np.asarray(f["return"], float)
-        meta = study.read_json(p + ".json")
-        if meta["seeds"] != seeds:
-            continue
-        if name in BASELINES:  # brax evaluates the initial policy first, at 0 steps
-            steps, ret = steps[1:], ret[:, 1:]
-        others[name] = (steps, ret, meta["wall_s"])
+    others = _others(task, seeds)
     paper_best = max((n for n in PAPER if n in others),
                      key=lambda n: study.final(others[n][1]).mean(), default=None)
     for name in (*BASELINES, paper_best):
@@ -208,7 +267,7 @@ def report(task: str, out: str) -> None:
     ax.axhline(threshold, color="k", ls="--", lw=0.8)
     ax.set_xscale("log")
     ax.set_xlabel("environment steps (log)")
-    ax.set_ylabel("return of the deterministic policy")
+    ax.set_ylabel(f"{measure_name} of the deterministic policy")
     ax.set_title(f"{task}: {len(seeds)} held-out seeds (mean, 95% t-band)")
     ax.legend(fontsize=7)
     fig.tight_layout()
@@ -216,9 +275,8 @@ def report(task: str, out: str) -> None:
     fig.savefig(figure, dpi=110)
     plt.close(fig)
     study.write_json(os.path.join(out, "heldout_table.json"), {
-        "task": task, "threshold": threshold, "seeds": seeds, "budget": BUDGETS[task],
-        "horizon_steps": int(round(config_lib.preset(task, method=METHOD).model_horizon
-                                   / tasks.make_task(config_lib.PRESETS[task]["env"]).dt)),
+        "task": task, "threshold": threshold, "measure": measure_name, "seeds": seeds,
+        "budget": BUDGETS[task], "horizon_steps": _horizon_steps(task),
         "paper_best": paper_best, "rows": rows})
     study.log(f"wrote {figure} and {out}/heldout_table.json")
 
@@ -240,7 +298,7 @@ def main(argv=None) -> int:
     if args.stage == "tune":
         tune(args.task, out)
     elif args.stage == "heldout":
-        heldout(args.task, out, study.HELDOUT_SEEDS, args.only)
+        heldout(args.task, out, heldout_seeds(args.task), args.only)
     else:
         report(args.task, out)
     return 0
