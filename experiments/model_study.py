@@ -106,8 +106,9 @@ def overrides(task: str, settings: dict) -> dict:
 
 def measure(task: str) -> tuple[str, float, str]:
     """(the record a run is measured by, the level to reach, its name)."""
-    return MEASURES.get(task, ("eval_return", tasks.THRESHOLDS[config_lib.PRESETS[task]["env"]],
-                               "return"))
+    if task in MEASURES:
+        return MEASURES[task]
+    return "eval_return", tasks.THRESHOLDS[config_lib.PRESETS[task]["env"]], "return"
 
 
 def heldout_seeds(task: str) -> list[int]:
