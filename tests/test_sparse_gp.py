@@ -382,7 +382,7 @@ def _update_batch_traced(state, xs, ys, ts, hyper, age_penalty):
     seed=st.integers(0, 2**31 - 1),
     log_ratio=st.floats(1.0, 6.0),
     duplicate_share=st.floats(0.0, 0.9),
-    capacity=st.sampled_from([3, 7, 12]),  # a tiny, a middling and a roomy budget: each is a compile
+    capacity=st.sampled_from([3, 12]),  # a tiny and a roomy budget: each is a compile
     age_penalty=st.sampled_from([0.0, 0.5, 50.0]),
 )
 def test_state_is_never_finite_but_wrong(seed, log_ratio, duplicate_share, capacity, age_penalty):
@@ -620,9 +620,10 @@ def _adversarial_stream(n, seed, dtype):
     return jnp.asarray(xs, dtype), jnp.asarray(ys, dtype), jnp.asarray(valid)
 
 
-@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
-@pytest.mark.parametrize("age_fn, capacity", [("exp", 12), ("logit", 30)])
-def test_segmented_loop_equals_scanned_updates_bit_for_bit(dtype, age_fn, capacity):
+# each case compiles four loops: the two dtypes and the two age functions, each once
+@pytest.mark.parametrize("age_fn, capacity, dtype", [("exp", 12, jnp.float64),
+                                                     ("logit", 30, jnp.float32)])
+def test_segmented_loop_equals_scanned_updates_bit_for_bit(age_fn, capacity, dtype):
     """One GP takes in a batch through while-loop segments (no per-pair lax.cond), or through the
     scanned loop (`update_with_info`'s steps under lax.scan), both on buffers padded to a multiple
     of 8 slots: the same state and info, bit for bit, on a stream that fills the budget, exchanges
