@@ -596,8 +596,9 @@ def model_table(task: str) -> str:
     path = os.path.join("model", task, "heldout_table.json")
     with open(os.path.join(RESULTS, path)) as f:
         d = json.load(f)
+    measure = d["measure"]
     lines = ["| method | seeds reaching the threshold | environment steps to it, median | "
-             "wall time to it, median | final return, mean | seeds above it at the end | "
+             f"wall time to it, median | final {measure}, mean | seeds above it at the end | "
              "P(better than the mean model) | model error 1 − R², second update / last | "
              "simulated return, last update |",
              "|---|---|---|---|---|---|---|---|---|"]
@@ -606,25 +607,34 @@ def model_table(task: str) -> str:
         p = r.get("p_improvement_over_mean")
         err = (f"{r['model_error_second']:.3f} / {r['model_error_last']:.3f}"
                if "model_error_last" in r else "–")
+        final = f"{r['final_mean']:.2f}" if measure == "success rate" else f"{r['final_mean']:.1f}"
         lines.append(f"| {r['method']} | {r['seeds_reaching']}/{r['seeds']} | "
                      f"{_steps(r['steps_to_threshold_median'])} | "
-                     f"{'–' if wall is None else f'{wall:.0f} s'} | {r['final_return_mean']:.1f} | "
+                     f"{'–' if wall is None else f'{wall:.0f} s'} | {final} | "
                      f"{r['seeds_above_at_end']}/{r['seeds']} | "
                      f"{'–' if p is None else f'{p:.2f}'} | {err} | "
                      + (f"{r['model_return_last']:.1f} |" if "model_return_last" in r else "– |"))
     seeds = d["seeds"]
+    if measure == "success rate":
+        what = (f"threshold a success rate of {d['threshold']:g} over the deterministic policy's "
+                "evaluation episodes (a swing-up held for the last second); SAC, PPO and the "
+                f"paper's best method here ({d['paper_best']}) are the swing-up study's held-out "
+                "runs, on the first ten of these seeds, at their own budgets.")
+    else:
+        what = (f"threshold {d['threshold']:g}, the mean return of the deterministic policy's "
+                "evaluation episodes from the task's random starts; SAC, PPO and the paper's best "
+                f"method here ({d['paper_best']}) are the standard-tasks study's held-out runs at "
+                "their own budgets.")
     lines.append("")
-    lines.append(f"Held-out seeds {seeds[0]}–{seeds[-1]}; threshold {d['threshold']:g}, the mean "
-                 "return of the deterministic policy's evaluation episodes from the task's random "
-                 "starts; a seed reaches it at its first evaluation at or above it. gp_model ran "
-                 f"{d['budget']:,} environment steps of learning; SAC, PPO and "
-                 f"the paper's best method here ({d['paper_best']}) are the standard-tasks study's "
-                 "held-out runs at their own budgets. Final return: the last evaluation of each "
+    lines.append(f"Held-out seeds {seeds[0]}–{seeds[-1]}; {what} A seed reaches the threshold at "
+                 f"its first evaluation at or above it. gp_model ran {d['budget']:,} environment "
+                 f"steps of learning. Final {measure}: the last evaluation of each "
                  "run (for the others, the last of their longer runs). Wall time to the threshold: "
                  "a run's seconds per seed (compilation included), in proportion to its steps at "
                  "the threshold, on a 2-core CPU that other runs shared at times (an indication, "
                  "not a benchmark). P(better than the mean model): the probability that a seed's "
-                 "final return under the choice beats one under the mean model (Mann–Whitney). "
+                 f"final {measure} under the choice beats one under the mean model "
+                 "(Mann–Whitney). "
                  "Model error: the model's prediction of an update's new transitions before it "
                  "took them in, 1 − R² over the observation's coordinates, median over seeds. "
                  "Simulated return: the mean return of the model's particle roll-outs over the "
@@ -639,19 +649,22 @@ def model_tuning_table(task: str) -> str:
     path = os.path.join("model", task, "tuning.json")
     with open(os.path.join(RESULTS, path)) as f:
         d = json.load(f)
-    lines = ["| settings | score (tuning seeds) | final return | chosen |", "|---|---|---|---|"]
+    measure = d["measure"]
+    lines = ["| settings | score (tuning seeds) | final " + measure + " | chosen |",
+             "|---|---|---|---|"]
     for t in d["tried"]:
         settings = _settings(t["settings"]) or "(the defaults)"
-        lines.append(f"| {settings} | {t['score']:.1f} | {t['final']:.1f} | "
+        digits = 2 if measure == "success rate" else 1
+        lines.append(f"| {settings} | {t['score']:.{digits}f} | {t['final']:.{digits}f} | "
                      f"{'yes' if t['settings'] == d['chosen'] else ''} |")
     lines.append("")
     lines.append(f"Tuning seeds {d['seeds']}, {d['budget']:,} environment steps of learning per "
-                 "run. Score: the mean return of the deterministic policy over the evaluations in "
+                 f"run. Score: the mean {measure} of the deterministic policy over the evaluations in "
                  "the second half of the budget, mean over seeds. " + _source(path))
     return "\n".join(lines)
 
 
-MODEL_TASKS = ("pendulum-v1", "inverted-pendulum")  # with a gp_model study
+MODEL_TASKS = ("pendulum-v1", "inverted-pendulum", "swingup")  # with a gp_model study
 STANDARD_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
                   "inverted-double-pendulum")  # with a comparison
 

@@ -147,7 +147,8 @@ def tune(task: str, out: str) -> None:
         return results
 
     result = study.coordinate_search(study.stages(GRIDS[task]), evaluate, log=study.log)
-    study.write_json(path, {"task": task, "seeds": list(study.TUNING_SEEDS),
+    study.write_json(path, {"task": task, "measure": measure(task)[2],
+                            "seeds": list(study.TUNING_SEEDS),
                             "grid": GRIDS[task], "base": BASE[task],
                             "budget": BUDGETS[task], **result})
     study.log(f"wrote {path}: {result['chosen']}")
