@@ -326,8 +326,9 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
              hallucination=None, beta=None, end_softness=0.1):
     """The mean over particles of the simulated returns: undiscounted sums of the task's reward
     over the plan's steps, each weighed by the particle's probability of being alive. A model step
-    is one decision of `prog.hold` control steps; its reward is `prog.hold` times the reward of
-    the transition to the decision's end (the steps in between are not simulated). A task
+    is one decision of k = `prog.hold` control steps, whose steps in between are not simulated:
+    its reward is k times the reward of the transition to the decision's end, of which only the
+    last can end the episode (an end's bonus counts once). A task
     with an end margin (`Task.end_margin`) ends a step with probability sigmoid(margin /
     `end_softness`), a smoothed end whose gradient reaches the controller where the hard end's
     is 0 (its reward, where the end enters it, takes that probability too); a task with only
@@ -357,7 +358,10 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
             if task.end_fn is None:
                 return (nxt, alive), hold * task.reward_fn(obs, a, nxt)
             p_end = end_probability(nxt)
-            return (nxt, alive * (1.0 - p_end)), hold * alive * task.reward_fn(obs, a, nxt, p_end)
+            r = task.reward_fn(obs, a, nxt, p_end)
+            if hold > 1:  # the hold's other steps do not end it
+                r = r + (hold - 1) * task.reward_fn(obs, a, nxt, jnp.zeros_like(p_end))
+            return (nxt, alive * (1.0 - p_end)), alive * r
 
         _, rewards = jax.lax.scan(step, (obs0, jnp.ones((), obs0.dtype)), eps)
         return jnp.sum(rewards)

@@ -351,6 +351,35 @@ def test_the_controller_optimised_through_a_learned_model_approaches_the_lqr_gai
         tasks.make_task.cache_clear()
 
 
+def test_a_held_step_counts_its_reward_k_times_and_an_end_s_bonus_once():
+    """A model that moves x by 1 a decision (its mean: zero weights, target mean 1), decisions
+    held 3 steps, reward -1 a step and 10 more at the end (x >= 2.5, a hard end): x = 1, 2, 3,
+    the third decision ending the episode, so the simulated return is -3 - 3 + (9 - 2) = 1."""
+    base = _linear_task()
+    task = base._replace(
+        name="test:held_end", reset=lambda key, cfg: (jnp.zeros((1,), cfg.dtype),) * 2,
+        reward_fn=lambda x, u, nxt, end=None: -1.0 + 10.0 * jnp.asarray(end, x.dtype),
+        end_fn=lambda nxt: nxt[0] >= 2.5)
+    tasks.register(task)
+    try:
+        cfg = C.make_config(env="test:held_end", method="gp_model", controller="linear",
+                            episode_length=30, num_updates=1, episodes_per_update=1,
+                            hold_time=3.0, model_particles=2, model_horizon=15.0,
+                            model_inducing=4)
+        prog = rollouts.make_program(cfg)
+        assert prog.hold == 3 and MB.plan_steps(prog, cfg) == 5
+        xs = jnp.asarray(np.random.default_rng(0).normal(size=(4, 2)))
+        data = MB.take_in(MB.init(prog, None, cfg), xs, jnp.zeros((4, 1)), jnp.ones(4, bool))
+        model, _ = MB.build(data, 4)
+        assert float(jnp.max(jnp.abs(model.weights))) == 0.0
+        plan = MB.make_plan(prog, cfg, model, jax.random.key(0), "mean", 2, 5)
+        ret = MB.simulate(prog, model, jnp.ones((1,)), plan, prog.controller.init(jnp.float64))
+        assert float(ret) == pytest.approx(1.0, abs=1e-12)
+    finally:
+        tasks._REGISTERED.pop("test:held_end", None)
+        tasks.make_task.cache_clear()
+
+
 def test_it_is_a_registered_method_the_drivers_take():
     m = methods.get("gp_model")
     assert "gp_model" in C.METHODS and "gp_model" not in C.PAPER_METHODS
