@@ -262,6 +262,27 @@ def _variance(model: SparseModel, ks):
     return jnp.maximum(v, 0.0)
 
 
+def variance_factors(model: SparseModel):
+    """(L^-1, L_B^-1 L^-1), (E, M, M) each: with them the latent variance at x is
+    sf^2 - |L^-1 k|^2 + |L_B^-1 L^-1 k|^2 by two matrix-vector products (`fast_variance`), where
+    `_variance` solves two triangular systems; for the simulated roll-outs, which evaluate it at
+    every step of every particle with the model fixed."""
+    def one(chol, chol_b):
+        eye = jnp.eye(chol.shape[0], dtype=chol.dtype)
+        inv_l = jax.scipy.linalg.solve_triangular(chol, eye, lower=True)
+        return inv_l, jax.scipy.linalg.solve_triangular(chol_b, inv_l, lower=True)
+    return jax.vmap(one)(model.chol_zz, model.chol_b)
+
+
+def fast_variance(model: SparseModel, factors, ks):
+    """`_variance` from `variance_factors`: the latent predictive variance of every output, (E,)."""
+    inv_l, inv_bl = factors
+    p = jnp.einsum("emn,en->em", inv_l, ks)
+    q = jnp.einsum("emn,en->em", inv_bl, ks)
+    v = model.kernels.signal_variance - jnp.sum(p * p, axis=-1) + jnp.sum(q * q, axis=-1)
+    return jnp.maximum(v, 0.0)
+
+
 def predict(model: SparseModel, x):
     """The latent predictive mean and variance of every output at one input x: (E,), (E,)."""
     ks = _k_star(model, x)
@@ -296,11 +317,13 @@ class Plan(NamedTuple):
       weights: (P, E, M) each particle's function (the mean's weights for 'mean' and
         'optimistic', one draw for all under 'thompson').
       noise: (P, T, E) standard normals of the transition noise ('sample'; zeros otherwise).
+      variance: `variance_factors` of the model ('optimistic'; None otherwise).
     """
 
     start: jax.Array
     weights: jax.Array
     noise: jax.Array
+    variance: tuple | None = None
 
 
 def make_plan(prog, cfg, model: SparseModel, key, exploration: str, num_particles: int,
@@ -319,7 +342,8 @@ def make_plan(prog, cfg, model: SparseModel, key, exploration: str, num_particle
             one = model.weights
         weights = jnp.broadcast_to(one, (num_particles, e, m))
         noise = jnp.zeros((num_particles, num_steps, e), model.weights.dtype)
-    return Plan(start, weights, noise)
+    factors = variance_factors(model) if exploration == "optimistic" else None
+    return Plan(start, weights, noise, factors)
 
 
 def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_params,
@@ -351,7 +375,8 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
             ks = _k_star(model, x)
             delta = jnp.sum(ks * w, axis=-1) + target_mean + noise_std * eps_t
             if hallucination is not None:
-                var = _variance(model, ks)
+                var = (_variance(model, ks) if plan.variance is None
+                       else fast_variance(model, plan.variance, ks))
                 eta = jax.vmap(lambda p: controller.apply(p, obs))(hallucination) / controller.u_max
                 delta = delta + beta * jnp.sqrt(var) * eta
             nxt = next_of(task, obs, delta)

@@ -40,6 +40,13 @@ def _predict(model, xs):
     return jax.vmap(lambda x: MB.predict(model, x))(xs)
 
 
+@jax.jit
+def _fast_variance(model, xs):
+    """The variance the optimistic roll-outs use (`fast_variance`, from explicit factors)."""
+    factors = MB.variance_factors(model)
+    return jax.vmap(lambda x: MB.fast_variance(model, factors, MB._k_star(model, x)))(xs)
+
+
 KERN = dict(ls=np.array([0.9, 1.3, 0.7]), sf2=1.7, sn2=0.05)
 
 
@@ -49,8 +56,8 @@ def _kernel(dtype):
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
 def test_with_every_input_inducing_the_model_is_the_exact_gp(dtype):
-    """Z = the data: the sparse GP's mean and variance are the exact GP's (Cholesky in NumPy),
-    and the buffer's unwritten slots (junk, masked) change nothing."""
+    """Z = the data: the sparse GP's mean and variance (both ways of computing it) are the exact
+    GP's (Cholesky in NumPy), and the buffer's unwritten slots (junk, masked) change nothing."""
     rng = np.random.default_rng(0)
     xs, ys = _data(rng, 25, 3)
     junk = rng.normal(size=(7, 3)) * 50.0
@@ -73,12 +80,14 @@ def test_with_every_input_inducing_the_model_is_the_exact_gp(dtype):
     rtol = 1e-7 if dtype == "float64" else 2e-3
     np.testing.assert_allclose(mean, mean_ref, rtol=rtol, atol=rtol * np.abs(mean_ref).max())
     np.testing.assert_allclose(var, var_ref, rtol=rtol * 10, atol=rtol * KERN["sf2"] * 10)
+    fast = np.asarray(_fast_variance(m, jnp.asarray(tests_x, dtype))[:, 0])
+    np.testing.assert_allclose(fast, var_ref, rtol=rtol * 10, atol=rtol * KERN["sf2"] * 10)
 
 
 def test_with_fewer_inducing_inputs_it_is_the_dtc_posterior_in_numpy():
     """M < N: mean sigma^-2 k Sigma K_ZX y, variance k** - k K_ZZ^-1 k + k Sigma k, Sigma =
-    (K_ZZ + sigma^-2 K_ZX K_XZ)^-1, written directly (the same jitter on K_ZZ); an unused
-    inducing slot changes nothing."""
+    (K_ZZ + sigma^-2 K_ZX K_XZ)^-1, written directly (the same jitter on K_ZZ), the variance
+    both ways; an unused inducing slot changes nothing."""
     rng = np.random.default_rng(1)
     xs, ys = _data(rng, 60, 3)
     z = xs[:8]
@@ -93,12 +102,14 @@ def test_with_fewer_inducing_inputs_it_is_the_dtc_posterior_in_numpy():
     sigma = np.linalg.inv(kzz + kzx @ kzx.T / KERN["sn2"])
     xt = rng.normal(size=(6, 3))
     mean, var = _predict(m, jnp.asarray(xt))
+    fast = _fast_variance(m, jnp.asarray(xt))
     for i, x in enumerate(xt):
         k = _se(x[None], z, KERN["ls"], KERN["sf2"])[0]
         mean_ref = k @ sigma @ kzx @ ys / KERN["sn2"]
         var_ref = KERN["sf2"] - k @ np.linalg.solve(kzz, k) + k @ sigma @ k
         np.testing.assert_allclose(float(mean[i, 0]), mean_ref, rtol=1e-7, atol=1e-9)
         np.testing.assert_allclose(float(var[i, 0]), var_ref, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(float(fast[i, 0]), var_ref, rtol=1e-6, atol=1e-9)
 
 
 def test_function_samples_have_the_posterior_mean_and_covariance():
