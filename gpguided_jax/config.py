@@ -605,6 +605,11 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
         "guided_direction": {"learning_rate": 0.01, "discount_horizon": 30.0,
                              "candidate_scale": 0.25, "inverse_temperature": 100.0},
         "gp_critic": {"critic_learning_rate": 0.01},
+        # experiments/model_study.py (docs/model_based.md): 10 episodes, decisions held 5 steps
+        "gp_model": {"episodes_per_update": 1, "hold_time": 5.0, "init_log_std": 0.0,
+                     "min_std": 0.05, "eval_episodes": 5, "model_horizon": 200.0,
+                     "model_end_softness": 1.0, "num_updates": 11,
+                     "model_exploration": "thompson"},
     },
     "inverted-pendulum": {
         "reinforce": {"learning_rate": 0.01, "discount_horizon": 2.0,
