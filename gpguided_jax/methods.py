@@ -74,6 +74,8 @@ class Method(NamedTuple):
       fit_fields: the config fields its prior's fit reads (empty without a prior).
       explain_exploration: why a scheme outside `explorations` is refused (for the error).
       paper: one of the paper's methods (Fig. 5; `paper()`).
+      eval_held: its evaluation episodes decide every `hold_time`, as its learning episodes do (a
+        controller optimised for held actions, gp_model's); False: at every control step.
     """
 
     name: str
@@ -88,6 +90,7 @@ class Method(NamedTuple):
     fit_fields: tuple[str, ...] = ()
     explain_exploration: str = ""
     paper: bool = False
+    eval_held: bool = False
 
     @property
     def uses_gp(self) -> bool:

@@ -540,4 +540,5 @@ def check(cfg) -> None:
 methods.register(methods.Method(
     name="gp_model", policy="fixed_noise", prior="none", init=init, update=update, records=RECORDS,
     explorations=("white", "ou", "coloured"), compare_with=("reinforce", "gp_pg"), check=check,
-    explain_exploration="'parameter' noise changes the controller the model optimises"))
+    explain_exploration="'parameter' noise changes the controller the model optimises",
+    eval_held=True))

@@ -304,7 +304,9 @@ def episode_success(prog: Program, next_states, cfg: TrainConfig, rewards=None,
 
 def evaluate(prog: Program, key, theta, cfg: TrainConfig):
     """`eval_episodes` fresh episodes of the deterministic controller c(s; theta_c): (success rate,
-    mean reward per step, mean undiscounted return); zeros when eval_episodes = 0."""
+    mean reward per step, mean undiscounted return); zeros when eval_episodes = 0. The controller
+    acts at every control step, or every `prog.hold` steps for a method that declares
+    `eval_held`."""
     n = prog.config.eval_episodes
     if n == 0:
         zero = jnp.zeros((), prog.dtype)
@@ -315,7 +317,8 @@ def evaluate(prog: Program, key, theta, cfg: TrainConfig):
         return prog.controller.apply(theta.controller, obs), ()
 
     keys = jax.random.split(key, n)
-    if prog.task.name == "pendulum":
+    hold = prog.hold if prog.method is not None and prog.method.eval_held else 1
+    if prog.task.name == "pendulum" and hold == 1:
         traj = pendulum.batch_rollout(keys, cfg.pendulum, lambda k, s: act(k, s)[0],
                                       prog.config.episode_length)
         # batch_rollout's states are the states the actions were taken in; the last visited state
@@ -324,7 +327,7 @@ def evaluate(prog: Program, key, theta, cfg: TrainConfig):
         rewards, alive = traj.rewards, None
     else:
         _, visited, _, rewards, alive, _ = jax.vmap(
-            lambda k: run_episode(prog, k, act, cfg, prog.config.episode_length))(keys)
+            lambda k: run_episode(prog, k, act, cfg, prog.config.episode_length, hold))(keys)
     ok = jax.vmap(lambda v, r: episode_success(prog, v, cfg, r))(visited, rewards)
     return (jnp.mean(ok.astype(prog.dtype)), alive_mean(rewards, alive),
             jnp.mean(jnp.sum(rewards, axis=1)))

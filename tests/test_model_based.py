@@ -6,6 +6,7 @@ optimised through a learned model against the LQR gain of scipy's Riccati solver
 from __future__ import annotations
 
 import functools
+import types
 
 import jax
 import jax.numpy as jnp
@@ -15,7 +16,7 @@ import scipy.linalg
 
 from gpguided_jax import config as C
 from gpguided_jax import controllers as controllers_lib
-from gpguided_jax import kernels, methods, rollouts, tasks
+from gpguided_jax import kernels, methods, pendulum, rollouts, tasks
 from gpguided_jax import model_based as MB
 from gpguided_jax import train as T
 
@@ -389,6 +390,35 @@ def test_a_held_step_counts_its_reward_k_times_and_an_end_s_bonus_once():
     finally:
         tasks._REGISTERED.pop("test:held_end", None)
         tasks.make_task.cache_clear()
+
+
+def test_its_evaluation_episodes_hold_the_action_as_its_learning_episodes_do():
+    """gp_model's controller is optimised for actions held `hold_time`: its evaluation on the
+    paper's pendulum (start fixed, reward noise off) holds them 20 steps, as a loop of the
+    pendulum's own step does, and differs from deciding at every step."""
+    cfg = C.make_config(method="gp_model", controller="rbf", episode_length=200, num_updates=1,
+                        episodes_per_update=1, eval_episodes=2, hold_time=0.1,
+                        pendulum_overrides=dict(start_std=(0.0, 0.0), reward_noise_std=0.0,
+                                                start_mean=(0.3, 0.0)))
+    prog = rollouts.make_program(cfg)
+    assert prog.hold == 20 and methods.get("gp_model").eval_held
+    rng = np.random.default_rng(11)
+    params = jax.tree_util.tree_map(lambda p: jnp.asarray(rng.normal(size=p.shape)),
+                                    prog.controller.init(jnp.float64))
+    theta = types.SimpleNamespace(controller=params)
+    _, _, ret = rollouts.evaluate(prog, jax.random.key(0), theta, cfg)
+    step = jax.jit(lambda s, a: pendulum.step(jax.random.key(1), s, a, cfg.pendulum))
+    apply = jax.jit(prog.controller.apply)
+    s, total = jnp.array([0.3, 0.0]), 0.0
+    for _ in range(10):
+        a = apply(params, s)
+        for _ in range(20):
+            s, r = step(s, a)
+            total += float(r)
+    assert float(ret) == pytest.approx(total, rel=1e-12)
+    every_step = rollouts.evaluate(prog._replace(method=methods.get("gp_pg")), jax.random.key(0),
+                                   theta, cfg)[2]
+    assert abs(float(every_step) - total) > 1e-6 * abs(total), (float(every_step), total)
 
 
 def test_it_is_a_registered_method_the_drivers_take():
