@@ -382,10 +382,11 @@ def test_a_held_step_counts_its_reward_k_times_and_an_end_s_bonus_once():
         assert prog.hold == 3 and MB.plan_steps(prog, cfg) == 5
         xs = jnp.asarray(np.random.default_rng(0).normal(size=(4, 2)))
         data = MB.take_in(MB.init(prog, None, cfg), xs, jnp.zeros((4, 1)), jnp.ones(4, bool))
-        model, _ = MB.build(data, 4)
+        model, _ = jax.jit(MB.build, static_argnums=1)(data, 4)
         assert float(jnp.max(jnp.abs(model.weights))) == 0.0
         plan = MB.make_plan(prog, cfg, model, jax.random.key(0), "mean", 2, 5)
-        ret = MB.simulate(prog, model, jnp.ones((1,)), plan, prog.controller.init(jnp.float64))
+        ret = jax.jit(lambda m, p, c: MB.simulate(prog, m, jnp.ones((1,)), p, c))(
+            model, plan, prog.controller.init(jnp.float64))
         assert float(ret) == pytest.approx(1.0, abs=1e-12)
     finally:
         tasks._REGISTERED.pop("test:held_end", None)
