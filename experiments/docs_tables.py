@@ -664,7 +664,8 @@ def model_tuning_table(task: str) -> str:
     return "\n".join(lines)
 
 
-MODEL_TASKS = ("pendulum-v1", "inverted-pendulum", "swingup")  # with a gp_model study
+MODEL_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
+               "swingup")  # with a gp_model study
 STANDARD_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
                   "inverted-double-pendulum")  # with a comparison
 

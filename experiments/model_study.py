@@ -282,7 +282,10 @@ def report(task: str, out: str) -> None:
     ax.set_xscale("log")
     ax.set_xlabel("environment steps (log)")
     ax.set_ylabel(f"{measure_name} of the deterministic policy")
-    ax.set_title(f"{task}: {len(seeds)} held-out seeds (mean, 95% t-band)")
+    fewer = {c[1].shape[0] for n, c in curves.items() if not n.startswith("gp_model")} - {len(seeds)}
+    ax.set_title(f"{task}: {len(seeds)} held-out seeds (mean, 95% t-band)" if not fewer else
+                 f"{task}: held-out seeds, {len(seeds)} for gp_model, {min(fewer)} for the others "
+                 "(mean, 95% t-band)")
     ax.legend(fontsize=7)
     fig.tight_layout()
     figure = os.path.join(ROOT, "docs", "figures", f"model_{task}.png")
