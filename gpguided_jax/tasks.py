@@ -324,8 +324,42 @@ def _inverted_pendulum_margin(next_obs, scale):
 
 # The brax tasks whose reward and end are stated as functions of the transition (brax's double
 # pendulum's depend on the tip's height, which its observation does not hold).
+def _double_pendulum_tip(obs):
+    """The tip's position (x, height) in m from brax's double pendulum's observation (the cart's
+    x, the sines and the cosines of the two hinges' angles, ...): each pole is 0.6 m, the upper
+    one's angle relative to the lower's."""
+    x0, s1, s2, c1, c2 = (obs[i] for i in range(5))
+    return x0 + 0.6 * (s1 + s1 * c2 + c1 * s2), 0.6 * (c1 + c1 * c2 - s1 * s2)
+
+
+def _inverted_double_pendulum_reward(obs, action, next_obs, end=None):
+    """brax's inverted double pendulum: 10 unless the step ends the episode, less 0.01 x^2 +
+    (height - 2)^2 of the tip and 1e-3 v1^2 + 5e-3 v2^2 of the hinges' speeds (observations 6
+    and 7, which the observation clips to +-10: brax's own reward while they are within it)."""
+    del obs, action
+    x, height = _double_pendulum_tip(next_obs)
+    e = _inverted_double_pendulum_end(next_obs) if end is None else end
+    v1, v2 = next_obs[6], next_obs[7]
+    return (10.0 * (1.0 - jnp.asarray(e, next_obs.dtype)) - (0.01 * x ** 2 + (height - 2.0) ** 2)
+            - (1e-3 * v1 ** 2 + 5e-3 * v2 ** 2))
+
+
+def _inverted_double_pendulum_end(next_obs):
+    """brax's inverted double pendulum ends when the tip is at or below 1 m."""
+    return _double_pendulum_tip(next_obs)[1] <= 1.0
+
+
+def _inverted_double_pendulum_margin(next_obs, scale):
+    """The end's margin, 1 m less the tip's height, in units of the height's spread as the
+    cosines' spreads give it (0.6 m times their sum)."""
+    return (1.0 - _double_pendulum_tip(next_obs)[1]) / (0.6 * (scale[3] + scale[4]))
+
+
 BRAX_REWARDS = {"inverted_pendulum": (_inverted_pendulum_reward, _inverted_pendulum_end,
-                                      _inverted_pendulum_margin)}
+                                      _inverted_pendulum_margin),
+                "inverted_double_pendulum": (_inverted_double_pendulum_reward,
+                                             _inverted_double_pendulum_end,
+                                             _inverted_double_pendulum_margin)}
 
 
 def _supported_line() -> str:

@@ -297,6 +297,29 @@ def test_brax_inverted_pendulum_reward_and_end_as_the_task_states_them():
         assert bool(end_fn(obs)) == state.done == bool(margin(obs, jnp.ones(4)) > 0)
 
 
+def test_brax_inverted_double_pendulum_reward_and_end_as_the_task_states_them():
+    """`tasks.BRAX_REWARDS`' reward and end of brax's double pendulum, functions of the
+    observation (the tip from the hinges' sines and cosines), are those of brax's step, from
+    states whose bodies brax's own forward kinematics places, on both sides of the end."""
+    from brax import kinematics
+
+    env = _brax_env("inverted_double_pendulum")
+    reward_fn, end_fn, margin = tasks.BRAX_REWARDS["inverted_double_pendulum"]
+    forward = jax.jit(kinematics.forward)
+    ends = []
+    for q, qd in (([0.1, 0.0, 0.0], [0.0, 0.0, 0.0]), ([0.2, 0.3, -0.5], [0.1, 2.0, -3.0]),
+                  ([-0.3, 0.5, 0.2], [0.5, -4.0, 6.0]), ([0.0, 0.45, 0.0], [0.0, 1.0, 1.0]),
+                  ([0.4, 0.8, 0.4], [-1.0, 9.0, -9.5])):
+        q, qd = jnp.array(q), jnp.array(qd)
+        x, _ = forward(env.sys, q, qd)
+        state, _ = _brax_step(env, 0.3, q=q, qd=qd, x=x)
+        obs = jnp.asarray(state.obs)
+        assert float(reward_fn(obs, 0.3, obs)) == pytest.approx(state.reward, rel=1e-5, abs=1e-4)
+        assert bool(end_fn(obs)) == state.done == bool(margin(obs, jnp.ones(8)) > 0)
+        ends.append(state.done)
+    assert ends == [False, False, True, False, True]
+
+
 def _double_pendulum_reward(x, y, v1, v2):
     """The reward and end that both define: the tip at (x, y) m, the hinges' speeds v1, v2."""
     end = bool(y <= 1)
