@@ -48,12 +48,13 @@ from gpguided_jax import exploration, model_based, runtime, stats, study, tasks 
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 METHOD = "gp_model"
-TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum", "swingup")
+TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum", "inverted-double-pendulum",
+         "swingup")
 # learning steps of a run: the aim's budget (2,000 on Pendulum-v1), one episode an update, and one
 # more update whose evaluation is that of the policy after the whole budget
 # (the car and the swing-up: 10 episodes)
 BUDGETS = {"pendulum-v1": 2000, "mountaincar-continuous": 9990, "inverted-pendulum": 6000,
-           "swingup": 9000}
+           "inverted-double-pendulum": 6000, "swingup": 9000}
 # the settings every run starts from: one episode an update; the first episode's noise is half
 # the torque range, the floor after it (`model_based` notes)
 # (brax's inverted pendulum: episodes restarted where they end, so that every slot is a step, as
@@ -65,6 +66,11 @@ BASE = {"pendulum-v1": dict(episodes_per_update=1, init_log_std=0.0, min_std=0.0
                                   model_capacity=3000, model_horizon=8.0),
         # the swing-up: the controller decides at 10 Hz and holds its action, as PILCO's does, so
         # that the model is of one decision; the simulated roll-outs as long as the episode
+        # brax's double pendulum as the single one, the simulated roll-outs of 4 s (200 steps)
+        "inverted-double-pendulum": dict(episodes_per_update=1, episode_end="restart",
+                                         init_log_std=math.log(0.5), min_std=0.05,
+                                         eval_episodes=5, model_capacity=3000,
+                                         model_horizon=4.0),
         # the car: decisions held 5 steps (its step counts as 1 s), simulated roll-outs of 200
         # steps, and the goal's end smoothed at the scale of the observation's spread, so that
         # the goal's bonus is felt from afar (`model_end_softness`)
@@ -85,6 +91,8 @@ GRIDS = {"pendulum-v1": [("model_exploration", list(model_based.EXPLORATIONS)),
          # a smaller grid where a run costs more: the exploration choice and the horizon (8 s)
          "inverted-pendulum": [("model_exploration", list(model_based.EXPLORATIONS)),
                                ("model_horizon", [4.0, 16.0])],
+         "inverted-double-pendulum": [("model_exploration", list(model_based.EXPLORATIONS)),
+                                      ("model_horizon", [2.0, 8.0])],
          # the car: the exploration choice, the end's smoothing, the horizon and the hold
          "mountaincar-continuous": [("model_exploration", list(model_based.EXPLORATIONS)),
                                     ("model_end_softness", [0.3, 3.0]),
