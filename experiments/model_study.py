@@ -26,7 +26,8 @@ Usage:
   python experiments/model_study.py tune --task pendulum-v1
   python experiments/model_study.py heldout --task pendulum-v1
   python experiments/model_study.py report --task pendulum-v1
-  (--task inverted-pendulum, swingup: the same three stages)
+  (--task mountaincar-continuous, inverted-pendulum, inverted-double-pendulum, swingup: the
+  same three stages)
 """
 
 from __future__ import annotations
@@ -64,8 +65,6 @@ BASE = {"pendulum-v1": dict(episodes_per_update=1, init_log_std=0.0, min_std=0.0
         "inverted-pendulum": dict(episodes_per_update=1, episode_end="restart",
                                   init_log_std=math.log(0.5), min_std=0.05, eval_episodes=5,
                                   model_capacity=3000, model_horizon=8.0),
-        # the swing-up: the controller decides at 10 Hz and holds its action, as PILCO's does, so
-        # that the model is of one decision; the simulated roll-outs as long as the episode
         # brax's double pendulum as the single one, the simulated roll-outs of 4 s (200 steps)
         "inverted-double-pendulum": dict(episodes_per_update=1, episode_end="restart",
                                          init_log_std=math.log(0.5), min_std=0.05,
@@ -77,6 +76,8 @@ BASE = {"pendulum-v1": dict(episodes_per_update=1, init_log_std=0.0, min_std=0.0
         "mountaincar-continuous": dict(episodes_per_update=1, hold_time=5.0, init_log_std=0.0,
                                        min_std=0.05, eval_episodes=5, model_horizon=200.0,
                                        model_end_softness=1.0),
+        # the swing-up: the controller decides at 10 Hz and holds its action, as PILCO's does, so
+        # that the model is of one decision; the simulated roll-outs as long as the episode
         "swingup": dict(episodes_per_update=1, hold_time=0.1, init_log_std=math.log(2.0),
                         min_std=0.05, eval_episodes=10, model_horizon=4.5)}
 # (parameter, values) per stage, applied over the best so far (its default between the values):

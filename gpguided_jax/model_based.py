@@ -359,6 +359,9 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
     `end_fn` ends hard. `hallucination`: eta's controller parameters, (E,)-batched (the
     optimistic choice)."""
     task, controller = prog.task, prog.controller
+    if hallucination is not None and plan.variance is None:
+        raise ValueError("an optimistic roll-out reads the model's variance factors: make its plan "
+                         "with exploration 'optimistic'")
     noise_std = jnp.sqrt(model.kernels.noise_variance)  # (E,)
     hold = prog.hold
 
@@ -375,8 +378,7 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
             ks = _k_star(model, x)
             delta = jnp.sum(ks * w, axis=-1) + target_mean + noise_std * eps_t
             if hallucination is not None:
-                var = (_variance(model, ks) if plan.variance is None
-                       else fast_variance(model, plan.variance, ks))
+                var = fast_variance(model, plan.variance, ks)
                 eta = jax.vmap(lambda p: controller.apply(p, obs))(hallucination) / controller.u_max
                 delta = delta + beta * jnp.sqrt(var) * eta
             nxt = next_of(task, obs, delta)

@@ -322,8 +322,6 @@ def _inverted_pendulum_margin(next_obs, scale):
     return (jnp.abs(next_obs[1]) - 0.2) / scale[1]
 
 
-# The brax tasks whose reward and end are stated as functions of the transition (brax's double
-# pendulum's depend on the tip's height, which its observation does not hold).
 def _double_pendulum_tip(obs):
     """The tip's position (x, height) in m from brax's double pendulum's observation (the cart's
     x, the sines and the cosines of the two hinges' angles, ...): each pole is 0.6 m, the upper
@@ -355,6 +353,7 @@ def _inverted_double_pendulum_margin(next_obs, scale):
     return (1.0 - _double_pendulum_tip(next_obs)[1]) / (0.6 * (scale[3] + scale[4]))
 
 
+# The brax tasks whose reward and end are stated as functions of the transition.
 BRAX_REWARDS = {"inverted_pendulum": (_inverted_pendulum_reward, _inverted_pendulum_end,
                                       _inverted_pendulum_margin),
                 "inverted_double_pendulum": (_inverted_double_pendulum_reward,
