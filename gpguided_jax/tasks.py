@@ -303,7 +303,10 @@ def _brax_adapter(name: str) -> _Adapter:
         s = env.step(state, a)
         return s, s.obs, s.reward, s.done > 0.5
 
-    return _Adapter(int(env.observation_size), float(env.dt), 1.0, 1000, reset, step,
+    # the observation's size by abstract evaluation: brax's `observation_size` resets the
+    # environment op by op, which compiles each of its physics' operations (seconds on a CPU)
+    obs_dim = jax.eval_shape(env.reset, jax.random.PRNGKey(0)).obs.shape[-1]
+    return _Adapter(int(obs_dim), float(env.dt), 1.0, 1000, reset, step,
                     *BRAX_REWARDS.get(name, (None, None, None)))
 
 

@@ -96,7 +96,8 @@ def run_script(args, *, fast_compile=True, timeout=600, **env):
 REPRODUCE_KW = dict(preset="tiny", seeds=[0, 1], chunk_size=2)
 
 # The reference run of the multi-device tests (tests/test_distributed.py, test_train.py's
-# test_two_host_devices_equal_one): the tiny preset's gp_pg, 4 seeds in chunks of 2.
+# test_two_host_devices_vmapped_agree_with_each_seed_alone): the tiny preset's gp_pg, 4 seeds in
+# chunks of 2.
 TWO_DEVICE_ARGS = ["reproduce", "--preset", "tiny", "--seeds", "4", "--methods", "gp_pg",
                    "--chunk-size", "2"]
 
