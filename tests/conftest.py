@@ -43,7 +43,9 @@ from gpguided_jax import runtime  # noqa: E402
 runtime.single_threaded_lapack()
 gpguided_jax.enable_x64()
 jax.config.update("jax_compilation_cache_dir", _CACHE)
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+# every program, the small ones included (as the command line caches them): the two workers
+# compile many of the same small programs, and reading one back is faster than compiling it
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
