@@ -184,8 +184,10 @@ def heldout(task: str, out: str, seeds, only) -> None:
         if study.finished(path + ".json", **meta):
             study.log(f"[{task} {choice}] done with these seeds and settings: {path}.json")
             continue
+        # a chunk per update: an update takes minutes on the brax tasks, and the run reports its
+        # progress and saves its checkpoint after each chunk
         run = study.run_method(task, METHOD, seeds, os.path.join(out, "runs", choice),
-                               overrides(task, settings), chunk_size=100)
+                               overrides(task, settings), chunk_size=1)
         os.makedirs(os.path.dirname(path), exist_ok=True)
         np.savez(path + ".npz", steps=run.env_steps, measure=run.records[measure(task)[0]],
                  model_error=run.records["model_error"])
