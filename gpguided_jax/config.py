@@ -61,6 +61,7 @@ STATIC_FIELDS = (
     "optimism",
     "episode_end",
     "critic_steps",
+    "critic_optimism",
     "model_capacity",
     "model_inducing",
     "model_fit_subset",
@@ -140,6 +141,9 @@ class TrainConfig:
         Q_GP(s, a_j). 0 (default): the paper. The other methods ignore it.
       critic_steps: gp_critic's K, the surrogate steps against Q_GP per update (`critic`; 0: gp_pg
         exactly). The other methods ignore it.
+      critic_optimism: gp_critic's kappa: the surrogate scores a state by E_a Q_GP + kappa (E_a
+        sigma_Q^2)^(1/2), sigma_Q the GP's latent standard deviation (> 0 optimistic, < 0
+        pessimistic; 0, the default: the mean alone). The other methods ignore it.
       model_capacity, model_inducing, model_fit_subset, model_fit_steps, model_particles,
         model_steps, model_horizon, model_exploration, model_optimizer: gp_model's transitions
         kept, inducing inputs, the refit's subset and Adam steps, simulated particles, optimiser
@@ -207,6 +211,7 @@ class TrainConfig:
     optimism: float = 0.0
     episode_end: str = "mask"
     critic_steps: int = 50
+    critic_optimism: float = 0.0
     model_capacity: int = 4000
     model_inducing: int = 200
     model_fit_subset: int = 300
@@ -286,7 +291,7 @@ FIELD_GROUPS: dict[str, tuple[str, ...]] = {
                     "noise_resample_time", "hold_time"),
     "estimator": ("discount", "use_baseline"),
     "optimiser": ("optimizer", "learning_rate", "max_grad_norm"),
-    "critic": ("critic_steps", "critic_learning_rate", "trust_region"),
+    "critic": ("critic_steps", "critic_optimism", "critic_learning_rate", "trust_region"),
     "model": ("model_capacity", "model_inducing", "model_fit_subset", "model_fit_steps",
               "model_particles", "model_steps", "model_horizon", "model_exploration",
               "model_optimizer", "model_learning_rate", "model_beta", "model_end_softness"),
@@ -380,11 +385,16 @@ def _check_exploration(cfg: TrainConfig, method: methods.Method) -> None:
                         ("noise_exponent", lambda v: 0 <= v <= 3, "in [0, 3]"),
                         ("noise_resample_time", lambda v: v >= 0, ">= 0 seconds"),
                         ("hold_time", lambda v: v >= 0, ">= 0 seconds"),
-                        ("optimism", lambda v: v >= 0, ">= 0")):
+                        ("optimism", lambda v: v >= 0, ">= 0"),
+                        ("critic_optimism", lambda v: True, "a finite number")):
         v = getattr(cfg, f)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
                 or not ok(v):
             _fail(f, f"must be {what}, got {v!r}")
+    if cfg.critic_optimism != 0.0 and cfg.dtype != "float64":
+        # its closed form holds the GP's covariance correction C as a matrix, whose entries
+        # cancel where the basis vectors' Gram matrix is ill-conditioned (design: critic)
+        _fail("critic_optimism", f"needs dtype 'float64', got {cfg.dtype!r}")
 
 
 def _check_traced(cfg: TrainConfig) -> None:

@@ -23,6 +23,11 @@ KL(pi_data || pi_theta) between the policy that gathered the episodes and the ne
 bound, else none). sigma stays in [min_std, max_std]. With `critic_steps` = 0 the method is gp_pg
 bit for bit.
 
+With `critic_optimism` kappa != 0 the surrogate scores each state by E_a mu_Q + kappa (E_a
+sigma_Q^2)^(1/2) (kappa > 0 optimistic, < 0 pessimistic): the GP's latent variance k** + k^T C k
+(Csato-Opper's C) averaged over the action in closed form as well (`expected_variance`), its
+gradient by autodiff.
+
 The exploration it accepts is every scheme whose marginal action at a decision point is
 N(c(s), sigma^2): white, Ornstein-Uhlenbeck and coloured noise, with or without held actions
 (the surrogate then runs over the decision states, the GP's own inputs).
@@ -74,6 +79,39 @@ def expected_q_and_grad(gp, kernel, factors, mean, std):
     return value, -jnp.sum(w * d) / v, jnp.sum(w * (d * d / v - 1.0)) * var / v
 
 
+def expected_variance(gp: sparse_gp.SparseGPState, kernel: kernels.KernelParams, correction,
+                      factors, mean, std):
+    """E_{a ~ N(mean, std^2)} sigma_Q^2(s, a), the GP's latent variance k** + k^T C k averaged over
+    the action, closed form, for one state (its `state_factors`); `correction` is C
+    (`sparse_gp.covariance_correction`, 0 on inactive slots).
+
+    E_a[k_i k_j] = f_i f_j (l_a^2 / w)^(1/2) exp(-(b_i - b_j)^2 / (4 l_a^2) - (mean - (b_i + b_j) /
+    2)^2 / w) with w = l_a^2 + 2 std^2, f the state factors and b the basis vectors' actions (the
+    product of two Gaussians in a, integrated against the policy's). C is negative semi-definite,
+    so the sum can round below 0 where the GP is sure: clipped at 0."""
+    la2 = kernel.lengthscales[-1] ** 2
+    w = la2 + 2.0 * std * std
+    b = gp.basis_vectors[:, -1]
+    gap = b[:, None] - b[None, :]
+    mid = 0.5 * (b[:, None] + b[None, :])
+    g = jnp.sqrt(la2 / w) * jnp.exp(-0.25 * gap * gap / la2 - (mean - mid) ** 2 / w)
+    quad = jnp.sum(correction * (factors[:, None] * factors[None, :]) * g)
+    return jnp.maximum(kernel.signal_variance + quad, 0.0)
+
+
+def _optimism_and_grad(gp, kernel, correction, factors, mean, std, kappa):
+    """kappa (E_a sigma_Q^2)^(1/2) and its derivatives in the mean action and in log std (by
+    autodiff; 0 where the expected variance is 0)."""
+    tiny = jnp.finfo(mean.dtype).tiny
+
+    def value(m, log_std):
+        v = expected_variance(gp, kernel, correction, factors, m, jnp.exp(log_std))
+        return kappa * jnp.sqrt(jnp.maximum(v, tiny))
+
+    val, (d_mean, d_log) = jax.value_and_grad(value, argnums=(0, 1))(mean, jnp.log(std))
+    return val, d_mean, d_log
+
+
 def gaussian_kl(mean_p, std_p, mean_q, std_q):
     """KL(N(mean_p, std_p^2) || N(mean_q, std_q^2)) = ((mean_p - mean_q)^2 / std_q^2 + e^x - 1 - x)
     / 2 with x = 2 log(std_p / std_q).
@@ -88,14 +126,22 @@ def gaussian_kl(mean_p, std_p, mean_q, std_q):
     return 0.5 * (d * d + 0.5 * x * x * h)
 
 
-def surrogate_and_grad(controller, gp, kernel, theta, states, factors, weights):
-    """J(theta) over the states (weighted mean of `expected_q`) and its gradient, a
-    `PolicyParams` pytree: the hand-derived derivatives through the controller's gradient."""
+def surrogate_and_grad(controller, gp, kernel, theta, states, factors, weights, optimism=0.0,
+                       correction=None):
+    """J(theta) over the states (weighted mean of `expected_q`, plus `optimism` times the root
+    of `expected_variance` when it is not 0: `correction` is then C) and its gradient, a
+    `PolicyParams` pytree: the derivatives in the mean action and log std through the
+    controller's gradient. `optimism` is a Python number (0: the mean alone, no variance
+    computed)."""
     std = jnp.exp(theta.log_std)
 
     def one(s, f):
         c, dc = controller.value_and_grad(theta.controller, s)
         q, dq_dc, dq_dlog = expected_q_and_grad(gp, kernel, f, c, std)
+        if optimism != 0.0:
+            u, du_dc, du_dlog = _optimism_and_grad(gp, kernel, correction, f, c, std,
+                                                   jnp.asarray(optimism, c.dtype))
+            q, dq_dc, dq_dlog = q + u, dq_dc + du_dc, dq_dlog + du_dlog
         return q, jax.tree_util.tree_map(lambda g: dq_dc * g, dc), dq_dlog
 
     q, g_c, g_log = jax.vmap(one)(states, factors)
@@ -115,10 +161,11 @@ def mean_kl(controller, theta_p, theta_q, states, weights):
 
 
 def improve(controller, gp, kernel, theta_data, theta, states, factors, weights, *, num_steps: int,
-            learning_rate, trust_region, min_std, max_std):
+            learning_rate, trust_region, min_std, max_std, optimism=0.0, correction=None):
     """`num_steps` Adam steps on the surrogate from `theta`, then the largest fraction 2^-j of the
     whole move (j = 0..LINE_SEARCH_HALVINGS) whose mean KL from `theta_data` is within
-    `trust_region` (none if no fraction is). sigma is clipped to [min_std, max_std].
+    `trust_region` (none if no fraction is). sigma is clipped to [min_std, max_std]. `optimism`
+    and `correction`: `surrogate_and_grad`'s.
 
     Returns:
       (theta, surrogate gain over `theta`, mean KL from theta_data, the fraction taken).
@@ -131,7 +178,8 @@ def improve(controller, gp, kernel, theta_data, theta, states, factors, weights,
 
     def step(carry, _):
         t, opt_state = carry
-        _, grad = surrogate_and_grad(controller, gp, kernel, t, states, factors, weights)
+        _, grad = surrogate_and_grad(controller, gp, kernel, t, states, factors, weights,
+                                     optimism, correction)
         grad = jax.tree_util.tree_map(lambda g: jnp.where(jnp.isfinite(g), g, 0.0), grad)
         updates, opt_state = optimizer.update(jax.tree_util.tree_map(jnp.negative, grad),
                                               opt_state, t)
@@ -147,8 +195,10 @@ def improve(controller, gp, kernel, theta_data, theta, states, factors, weights,
     ok = jnp.isfinite(kls) & (kls <= trust_region)
     frac = jnp.where(jnp.any(ok), fractions[jnp.argmax(ok)], 0.0)
     new = at(frac)
-    start, _ = surrogate_and_grad(controller, gp, kernel, theta, states, factors, weights)
-    end, _ = surrogate_and_grad(controller, gp, kernel, new, states, factors, weights)
+    start, _ = surrogate_and_grad(controller, gp, kernel, theta, states, factors, weights,
+                                  optimism, correction)
+    end, _ = surrogate_and_grad(controller, gp, kernel, new, states, factors, weights, optimism,
+                                correction)
     return new, end - start, mean_kl(controller, theta_data, new, states, weights), frac
 
 
@@ -198,7 +248,10 @@ def critic_update(prog, cfg, state, batch):
     new, gain, kl, frac = improve(
         prog.controller, batch.gp, state.kernel, state.theta, theta, states, factors, weights,
         num_steps=prog.config.critic_steps, learning_rate=cfg.critic_learning_rate,
-        trust_region=cfg.trust_region, min_std=cfg.min_std, max_std=cfg.max_std)
+        trust_region=cfg.trust_region, min_std=cfg.min_std, max_std=cfg.max_std,
+        optimism=prog.config.critic_optimism,
+        correction=(None if prog.config.critic_optimism == 0.0 else
+                    sparse_gp.covariance_correction(batch.gp)))
     return new, opt_state, method_state, dict(
         records, critic_gain=gain, critic_kl=kl, critic_step_fraction=frac.astype(prog.dtype))
 

@@ -2,6 +2,8 @@
 and its hand-derived gradient against quadrature, Monte Carlo and autodiff; the trust region;
 K = 0 as gp_pg; the method against gp_pg on a bandit with a known optimum."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -90,6 +92,103 @@ def test_the_hand_derived_gradient_against_autodiff_and_quadrature(dtype, std, a
                                    rtol=1e-6 if std / action_scale < 1 else 1e-2)
 
 
+def _data_points(seed, n=7, dim=3, spread=1.0):
+    """n random GP inputs (the states normal, the actions uniform in [-2, 2], all times `spread`:
+    a small spread makes the Gram matrix ill-conditioned) and targets, float64: (xs, ys)."""
+    rng = np.random.default_rng(seed)
+    xs = np.column_stack([rng.normal(size=(n, dim - 1)), rng.uniform(-2.0, 2.0, size=n)]) * spread
+    return xs, rng.normal(size=n)
+
+
+def _numpy_variance(xs, kernel, x):
+    """The exact GP's latent variance k** - k^T (K + sigma_n^2 I)^-1 k at inputs x (N, D), by
+    Cholesky in float64 NumPy."""
+    from scipy import linalg
+
+    ls = np.asarray(kernel.lengthscales, float)
+    sf2, sn2 = float(kernel.signal_variance), float(kernel.noise_variance)
+
+    def k(a, b):
+        z = (a[:, None, :] - b[None]) / ls
+        return sf2 * np.exp(-0.5 * np.sum(z * z, axis=-1))
+
+    chol = linalg.cho_factor(k(xs, xs) + sn2 * np.eye(len(xs)), lower=True)
+    kx = k(xs, x)
+    return sf2 - np.sum(kx * linalg.cho_solve(chol, kx), axis=0)
+
+
+# SCALES, and an ill-conditioned Gram matrix (condition number ~1e7): (std, action scale, spread)
+VARIANCE_CASES = [(0.05, 1.0, 1.0), (2.0, 0.3, 1.0), (0.3, 0.7, 0.02)]
+
+
+@pytest.mark.parametrize("std, action_scale, spread", VARIANCE_CASES)
+def test_the_expected_variance_against_quadrature_of_the_exact_gp(std, action_scale, spread):
+    """E_a sigma_Q^2 in closed form against the exact GP's variance (Cholesky, NumPy) integrated
+    over a fine grid of actions, and its derivative in the mean action against a central
+    difference of that integral; float64, which `critic_optimism` requires."""
+    dtype = jnp.float64
+    kernel = _kernel(dtype, action_scale)
+    xs, ys = _data_points(6, spread=spread)
+    gp = sparse_gp.exact_state(jnp.asarray(xs), jnp.asarray(ys), kernel, capacity=9)
+    correction = sparse_gp.covariance_correction(gp)
+    x_state, mean = xs[2, :2] + 0.1 * spread, 0.4 * spread
+    factors = critic.state_factors(gp, kernel, jnp.asarray(x_state))
+
+    def reference(m):
+        u = np.linspace(-12.0, 12.0, 24001)
+        density = np.exp(-0.5 * u * u) / np.sqrt(2 * np.pi)
+        grid = np.column_stack([np.tile(x_state, (u.size, 1)), m + std * u])
+        return integrate.trapezoid(density * _numpy_variance(xs, kernel, grid), u)
+
+    value = jax.jit(critic.expected_variance)
+    got = float(value(gp, kernel, correction, factors, jnp.asarray(mean), jnp.asarray(std)))
+    want = reference(mean)
+    assert 0.01 < want < float(kernel.signal_variance)  # neither at the data nor away from it
+    np.testing.assert_allclose(got, want, rtol=1e-7 if spread < 1 else 1e-9)
+    h = 1e-4
+    d_mean = jax.grad(lambda m: value(gp, kernel, correction, factors, m, std))(mean)
+    np.testing.assert_allclose(float(d_mean), (reference(mean + h) - reference(mean - h)) / (2 * h),
+                               rtol=1e-5, atol=1e-9)
+
+
+def test_critic_optimism_is_refused_in_float32():
+    with pytest.raises(ValueError, match="critic_optimism: needs dtype 'float64'"):
+        C.preset("tiny", method="gp_critic", critic_optimism=1.0, dtype="float32")
+
+
+def test_optimism_moves_the_policy_towards_the_actions_the_critic_has_not_seen():
+    """Data at actions in [-2, -1] only and a flat mean (every return 0, the prior mean 0): the
+    surrogate's mean part has nothing to climb, and its variance part grows towards positive
+    actions. kappa > 0 raises the mean action, kappa < 0 lowers it, kappa = 0 leaves it (to
+    rounding) where it was."""
+    dtype = jnp.float64
+    kernel = _kernel(dtype, 0.7)
+    controller, states = _controller_and_states(dtype, n=32)
+    xs = np.column_stack([np.asarray(states)[:12], np.linspace(-2.0, -1.0, 12)])
+    gp = sparse_gp.exact_state(jnp.asarray(xs), jnp.zeros(12, dtype), kernel, capacity=15)
+    correction = sparse_gp.covariance_correction(gp)
+    theta = T.policies.PolicyParams(controller=controller.init(dtype),
+                                    log_std=jnp.asarray(np.log(0.5), dtype))
+    factors = jax.vmap(lambda s: critic.state_factors(gp, kernel, s))(states)
+    weights = jnp.ones(states.shape[0], dtype)
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def mean_action_after(kappa):
+        new, gain, _, _ = critic.improve(
+            controller, gp, kernel, theta, theta, states, factors, weights, num_steps=30,
+            learning_rate=0.05, trust_region=1.0, min_std=0.5, max_std=0.5, optimism=kappa,
+            correction=correction)
+        return jnp.mean(jax.vmap(lambda s: controller.apply(new.controller, s))(states)), gain
+
+    start = float(jnp.mean(jax.vmap(lambda s: controller.apply(theta.controller, s))(states)))
+    up, gain_up = mean_action_after(1.0)
+    down, gain_down = mean_action_after(-1.0)
+    flat, _ = mean_action_after(0.0)
+    assert float(up) > start + 0.1 and float(down) < start - 0.1, (start, up, down)
+    assert abs(float(flat) - start) < 1e-6
+    assert float(gain_up) > 0 and float(gain_down) > 0
+
+
 def _controller_and_states(dtype, n=64):
     rng = np.random.default_rng(5)
     centres = rng.normal(size=(6, 2))
@@ -168,9 +267,10 @@ def critic_registered():
 
 def test_with_no_critic_steps_it_is_gp_pg_bit_for_bit(critic_registered):
     """On the same update's batch (steps 1-2 are shared), gp_critic's step with K = 0 is gp_pg's
-    bit for bit; with K > 0 it moves further."""
+    bit for bit; with K > 0 it moves further, and with critic_optimism elsewhere."""
     prior = T.GPPrior(kernels.make_kernel_params(np.ones(4), 0.5, 0.05), jnp.asarray(-1.0))
     cfgs = {k: C.preset("tiny", method=critic_registered, critic_steps=k) for k in (0, 2)}
+    cfgs["optimistic"] = cfgs[2].replace(critic_optimism=1.0)
     progs = {k: T.make_program(c) for k, c in cfgs.items()}
     state = T.initial_state(progs[0], jax.random.PRNGKey(4), cfgs[0], prior)
 
@@ -180,11 +280,12 @@ def test_with_no_critic_steps_it_is_gp_pg_bit_for_bit(critic_registered):
         gp, eps, returns, _, _ = T.roll_out_and_take_in(progs[0], cfgs[0], state, keys)
         batch = T.Batch(eps, returns, gp)
         return (policy_gradient.q_gp_update(progs[0], cfgs[0], state, batch),
-                *(critic.critic_update(progs[k], cfgs[k], state, batch) for k in (0, 2)),
+                *(critic.critic_update(progs[k], cfgs[k], state, batch)
+                  for k in (0, 2, "optimistic")),
                 (eps, returns))
 
-    (theta, opt, _, rec), (theta0, opt0, _, rec0), (theta5, _, _, rec5), (eps, returns) = \
-        updates(state)
+    ((theta, opt, _, rec), (theta0, opt0, _, rec0), (theta5, _, _, rec5), (theta_o, _, _, rec_o),
+     (eps, returns)) = updates(state)
     for a, b in zip(jax.tree_util.tree_leaves((theta, opt)), jax.tree_util.tree_leaves((theta0, opt0))):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     for f, v in rec.items():
@@ -199,6 +300,10 @@ def test_with_no_critic_steps_it_is_gp_pg_bit_for_bit(critic_registered):
     np.testing.assert_allclose(float(rec0["critic_error"]), expected, rtol=1e-9)
     assert float(rec0["action_lengthscale"]) == float(state.kernel.lengthscales[-1])
     assert not np.array_equal(np.asarray(theta.controller.weights), np.asarray(theta5.controller.weights))
+    # with critic_optimism the surrogate's steps differ from the mean's
+    assert all(np.isfinite(float(v)) for v in rec_o.values())
+    assert not np.array_equal(np.asarray(theta_o.controller.weights),
+                              np.asarray(theta5.controller.weights))
 
 
 # ------------------------------------------------------------------------------------------------
