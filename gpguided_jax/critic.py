@@ -126,19 +126,19 @@ def gaussian_kl(mean_p, std_p, mean_q, std_q):
     return 0.5 * (d * d + 0.5 * x * x * h)
 
 
-def surrogate_and_grad(controller, gp, kernel, theta, states, factors, weights, optimism=0.0,
+def surrogate_and_grad(controller, gp, kernel, theta, states, factors, weights, optimism=None,
                        correction=None):
     """J(theta) over the states (weighted mean of `expected_q`, plus `optimism` times the root
     of `expected_variance` when it is not 0: `correction` is then C) and its gradient, a
     `PolicyParams` pytree: the derivatives in the mean action and log std through the
-    controller's gradient. `optimism` is a Python number (0: the mean alone, no variance
-    computed)."""
+    controller's gradient. `optimism` None: the mean alone (no variance computed); else kappa,
+    which may be traced."""
     std = jnp.exp(theta.log_std)
 
     def one(s, f):
         c, dc = controller.value_and_grad(theta.controller, s)
         q, dq_dc, dq_dlog = expected_q_and_grad(gp, kernel, f, c, std)
-        if optimism != 0.0:
+        if optimism is not None:
             u, du_dc, du_dlog = _optimism_and_grad(gp, kernel, correction, f, c, std,
                                                    jnp.asarray(optimism, c.dtype))
             q, dq_dc, dq_dlog = q + u, dq_dc + du_dc, dq_dlog + du_dlog
@@ -161,7 +161,7 @@ def mean_kl(controller, theta_p, theta_q, states, weights):
 
 
 def improve(controller, gp, kernel, theta_data, theta, states, factors, weights, *, num_steps: int,
-            learning_rate, trust_region, min_std, max_std, optimism=0.0, correction=None):
+            learning_rate, trust_region, min_std, max_std, optimism=None, correction=None):
     """`num_steps` Adam steps on the surrogate from `theta`, then the largest fraction 2^-j of the
     whole move (j = 0..LINE_SEARCH_HALVINGS) whose mean KL from `theta_data` is within
     `trust_region` (none if no fraction is). sigma is clipped to [min_std, max_std]. `optimism`
@@ -249,9 +249,9 @@ def critic_update(prog, cfg, state, batch):
         prog.controller, batch.gp, state.kernel, state.theta, theta, states, factors, weights,
         num_steps=prog.config.critic_steps, learning_rate=cfg.critic_learning_rate,
         trust_region=cfg.trust_region, min_std=cfg.min_std, max_std=cfg.max_std,
-        optimism=prog.config.critic_optimism,
-        correction=(None if prog.config.critic_optimism == 0.0 else
-                    sparse_gp.covariance_correction(batch.gp)))
+        **({} if prog.config.critic_optimism == 0.0 else dict(
+            optimism=prog.config.critic_optimism,
+            correction=sparse_gp.covariance_correction(batch.gp))))
     return new, opt_state, method_state, dict(
         records, critic_gain=gain, critic_kl=kl, critic_step_fraction=frac.astype(prog.dtype))
 
