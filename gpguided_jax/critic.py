@@ -129,7 +129,7 @@ def gaussian_kl(mean_p, std_p, mean_q, std_q):
 def surrogate_and_grad(controller, gp, kernel, theta, states, factors, weights, optimism=None,
                        correction=None):
     """J(theta) over the states (weighted mean of `expected_q`, plus `optimism` times the root
-    of `expected_variance` when it is not 0: `correction` is then C) and its gradient, a
+    of `expected_variance` when it is given: `correction` is then C) and its gradient, a
     `PolicyParams` pytree: the derivatives in the mean action and log std through the
     controller's gradient. `optimism` None: the mean alone (no variance computed); else kappa,
     which may be traced."""
