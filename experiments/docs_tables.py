@@ -693,7 +693,8 @@ TABLES = {
     "exploration_pendulum_v1": lambda: exploration_standard_table("pendulum-v1"),
     **{f"standard_{t.replace('-', '_')}": (lambda t=t: standard_table(t)) for t in STANDARD_TASKS},
     **{f"standard_critic_{t.replace('-', '_')}": (lambda t=t: standard_critic_table(t))
-       for t in ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum")},
+       for t in ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
+                 "inverted-double-pendulum")},
     **{f"standard_tuning_{t.replace('-', '_')}": (lambda t=t: standard_tuning_table(t))
        for t in STANDARD_TASKS},
     **{f"model_{t.replace('-', '_')}": (lambda t=t: model_table(t)) for t in MODEL_TASKS},

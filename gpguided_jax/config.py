@@ -640,6 +640,7 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
         "guided_variance": {"learning_rate": 0.003, "discount_horizon": 2.0,
                             "guided_variance_scale": 0.25},
         "guided_direction": {"learning_rate": 0.01, "discount_horizon": 0.5},
+        "gp_critic": {"critic_learning_rate": 0.003},
         # experiments/model_study.py (docs/model_based.md): 6,000 steps
         "gp_model": {"episodes_per_update": 1, "num_updates": 7, "episode_end": "restart",
                      "init_log_std": math.log(0.5), "min_std": 0.05, "eval_episodes": 5,

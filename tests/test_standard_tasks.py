@@ -84,3 +84,31 @@ def test_heldout_skips_a_name_done_with_the_same_seeds_and_settings(tmp_path, mo
     script.heldout("pendulum-v1", out, [1000], ["reinforce"])
     assert runs == [{"learning_rate": 0.1, "discount_horizon": 1.0, "episode_end": "mask"}]
     assert study.read_json(f"{out}/heldout/reinforce.json")["wall_s"] == 2.0
+
+
+def test_the_presets_hold_the_settings_the_tuning_chose():
+    """`config.METHOD_PRESETS[task][method]` is each tuning record's choice on every standard task
+    (its horizon as `discount_horizon`), and nothing besides, so that `gpguided reproduce --preset
+    <task>` runs the methods as the study tuned them."""
+    import json
+
+    from gpguided_jax import config as C
+
+    script = _script()
+    results = os.path.join(ROOT, "docs", "results", "standard")
+    tasks = sorted(os.listdir(results))
+    assert tasks == ["inverted-double-pendulum", "inverted-pendulum", "mountaincar-continuous",
+                     "pendulum-v1"]
+    checked = 0
+    for task in tasks:
+        for method in script.METHODS:
+            path = os.path.join(results, task, "tuning", f"{method}.json")
+            with open(path) as f:
+                chosen = json.load(f)["chosen"]
+            expected = {("discount_horizon" if k == "horizon" else k): v for k, v in chosen.items()}
+            preset = C.METHOD_PRESETS[task].get(method, {})
+            assert set(preset) == set(expected), (task, method, preset, expected)
+            for k, v in expected.items():
+                assert math.isclose(preset[k], v, rel_tol=1e-12), (task, method, k)
+            checked += 1
+    assert checked == len(tasks) * len(script.METHODS)
