@@ -244,14 +244,13 @@ def critic_update(prog, cfg, state, batch):
         return theta, opt_state, method_state, dict(
             records, critic_gain=zero, critic_kl=zero, critic_step_fraction=zero)
     states, x, weights = _decision_states(prog, batch.episodes)
+    kappa = prog.config.critic_optimism or None  # 0: the mean alone, no variance computed
     factors = jax.vmap(lambda xs: state_factors(batch.gp, state.kernel, xs))(x)
     new, gain, kl, frac = improve(
         prog.controller, batch.gp, state.kernel, state.theta, theta, states, factors, weights,
         num_steps=prog.config.critic_steps, learning_rate=cfg.critic_learning_rate,
-        trust_region=cfg.trust_region, min_std=cfg.min_std, max_std=cfg.max_std,
-        **({} if prog.config.critic_optimism == 0.0 else dict(
-            optimism=prog.config.critic_optimism,
-            correction=sparse_gp.covariance_correction(batch.gp))))
+        trust_region=cfg.trust_region, min_std=cfg.min_std, max_std=cfg.max_std, optimism=kappa,
+        correction=None if kappa is None else sparse_gp.covariance_correction(batch.gp))
     return new, opt_state, method_state, dict(
         records, critic_gain=gain, critic_kl=kl, critic_step_fraction=frac.astype(prog.dtype))
 

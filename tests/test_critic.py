@@ -32,14 +32,17 @@ def _kernel(dtype, action_scale, dim=3):
                                       dtype=dtype)
 
 
+def _numpy_kernel(kernel, a, b):
+    """The ARD squared-exponential kernel between the rows of a (N, D) and b (M, D), float64
+    NumPy: (N, M)."""
+    z = (a[:, None, :] - b[None]) / np.asarray(kernel.lengthscales, float)
+    return float(kernel.signal_variance) * np.exp(-0.5 * np.sum(z * z, axis=-1))
+
+
 def _numpy_mean(gp, kernel, x):
     """mu_Q at inputs x (N, D) from the GP's definition, in float64 NumPy."""
-    b, a = np.asarray(gp.basis_vectors, float), np.asarray(gp.alpha, float)
-    m = np.asarray(gp.mask)
-    ls = np.asarray(kernel.lengthscales, float)
-    z = (x[:, None, :] - b[None]) / ls
-    k = float(kernel.signal_variance) * np.exp(-0.5 * np.sum(z * z, axis=-1)) * m
-    return float(gp.prior_mean) + k @ a
+    k = _numpy_kernel(kernel, x, np.asarray(gp.basis_vectors, float)) * np.asarray(gp.mask)
+    return float(gp.prior_mean) + k @ np.asarray(gp.alpha, float)
 
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
@@ -103,16 +106,10 @@ def _numpy_variance(xs, kernel, x):
     Cholesky in float64 NumPy."""
     from scipy import linalg
 
-    ls = np.asarray(kernel.lengthscales, float)
-    sf2, sn2 = float(kernel.signal_variance), float(kernel.noise_variance)
-
-    def k(a, b):
-        z = (a[:, None, :] - b[None]) / ls
-        return sf2 * np.exp(-0.5 * np.sum(z * z, axis=-1))
-
-    chol = linalg.cho_factor(k(xs, xs) + sn2 * np.eye(len(xs)), lower=True)
-    kx = k(xs, x)
-    return sf2 - np.sum(kx * linalg.cho_solve(chol, kx), axis=0)
+    gram = _numpy_kernel(kernel, xs, xs) + float(kernel.noise_variance) * np.eye(len(xs))
+    kx = _numpy_kernel(kernel, xs, x)
+    return float(kernel.signal_variance) - np.sum(
+        kx * linalg.cho_solve(linalg.cho_factor(gram, lower=True), kx), axis=0)
 
 
 # SCALES, and an ill-conditioned Gram matrix (condition number ~1e7): (std, action scale, spread)
