@@ -32,6 +32,9 @@ EPISODE_ENDS = ("mask", "restart")
 # simulated roll-outs, and the controller's optimiser
 MODEL_EXPLORATIONS = ("mean", "sample", "thompson", "optimistic")
 MODEL_OPTIMIZERS = ("adam", "lbfgs")
+# where gp_model's reward comes from: the task's own statement ('stated'), a GP learnt with the
+# dynamics ('learned'), or the first where the task states one ('auto')
+MODEL_REWARDS = ("auto", "stated", "learned")
 
 STATIC_FIELDS = (
     "method",
@@ -71,6 +74,7 @@ STATIC_FIELDS = (
     "model_horizon",
     "model_exploration",
     "model_optimizer",
+    "model_reward",
 )
 
 
@@ -150,6 +154,9 @@ class TrainConfig:
         steps per update, the simulated roll-outs' horizon (seconds), how the model's uncertainty
         enters them ('mean', 'sample', 'thompson', 'optimistic') and the controller's optimiser
         ('adam', 'lbfgs'; `model_based`).
+      model_reward: where gp_model's reward comes from: 'stated' (the task's `reward_fn`),
+        'learned' (one more GP output, the reward of a decision, learnt with the dynamics), or
+        'auto' (default: stated where the task states it, learned otherwise).
 
     Traced fields (leaves; sweepable by vmap):
       learning_rate: eta of the ascent step.
@@ -221,6 +228,7 @@ class TrainConfig:
     model_horizon: float = 4.0
     model_exploration: str = "mean"
     model_optimizer: str = "adam"
+    model_reward: str = "auto"
     # traced
     learning_rate: Any = 2e-4
     max_grad_norm: Any = 300.0
@@ -294,7 +302,8 @@ FIELD_GROUPS: dict[str, tuple[str, ...]] = {
     "critic": ("critic_steps", "critic_optimism", "critic_learning_rate", "trust_region"),
     "model": ("model_capacity", "model_inducing", "model_fit_subset", "model_fit_steps",
               "model_particles", "model_steps", "model_horizon", "model_exploration",
-              "model_optimizer", "model_learning_rate", "model_beta", "model_end_softness"),
+              "model_optimizer", "model_reward", "model_learning_rate", "model_beta",
+              "model_end_softness"),
 }
 
 
@@ -341,10 +350,11 @@ def _check_choices_and_sizes(cfg: TrainConfig) -> None:
     for f, choices in (("controller", CONTROLLERS), ("age_fn", AGE_FUNCTIONS),
                        ("optimizer", OPTIMIZERS), ("dtype", DTYPES),
                        ("model_exploration", MODEL_EXPLORATIONS),
-                       ("model_optimizer", MODEL_OPTIMIZERS)):
+                       ("model_optimizer", MODEL_OPTIMIZERS), ("model_reward", MODEL_REWARDS)):
         if getattr(cfg, f) not in choices:
             what = {"age_fn": "age function", "model_exploration": "model exploration",
-                    "model_optimizer": "model optimiser"}.get(f, f)
+                    "model_optimizer": "model optimiser",
+                    "model_reward": "model reward"}.get(f, f)
             _fail(f, f"unknown {what} {getattr(cfg, f)!r}; choose from {choices}")
     for f in ("num_updates", "episodes_per_update", "episode_length", "gp_capacity",
               "hyperfit_samples", "hyperfit_steps", "hyperfit_subset", "num_candidates", "gp_stride",

@@ -16,10 +16,17 @@ exploration noise, as for every method) then does three things:
    Adam steps warm-started from the previous update's kernels.
 3. **The controller is optimised through the model**: `model_steps` Adam steps on the mean return
    of `model_particles` simulated roll-outs of `model_horizon` seconds from the task's own start
-   distribution (`Task.reset`), with the task's reward stated as a function of the transition
-   (`Task.reward_fn`) and its end where it has one (`Task.end_fn`). The gradient is the
-   reparameterised one through the roll-outs (autodiff), with common random numbers: the particles'
-   start states and the model's samples are drawn once per update.
+   distribution (`Task.reset`), with the task's reward and its end where it has one
+   (`Task.end_fn`). The gradient is the reparameterised one through the roll-outs (autodiff), with
+   common random numbers: the particles' start states and the model's samples are drawn once per
+   update.
+
+The reward (`model_reward`) is the task's own statement as a function of the transition
+(`Task.reward_fn`), or, for a task that does not state it, learnt: one more GP output on the same
+input (z, a), whose target is the reward of a decision (its control steps' rewards summed), in the
+same buffer, refit and conditioning as the dynamics' outputs. The simulated roll-outs then read a
+decision's reward from that output (its mean, or the particle's drawn function under 'sample' and
+'thompson'; no transition noise, whose mean is 0).
 
 The model is the sparse GP of Titsias (2009) / DTC with `model_inducing` inducing inputs Z chosen
 from the buffered inputs by farthest-point sampling in the kernel's length-scales, conditioned on
@@ -61,9 +68,9 @@ from gpguided_jax import config, hyperfit, kernels, methods
 
 EXPLORATIONS = config.MODEL_EXPLORATIONS
 OPTIMIZERS = config.MODEL_OPTIMIZERS
-JITTER = 1e-6  # relative diagonal jitter of K_ZZ
-RECORDS = ("model_return", "model_gain", "model_error", "model_std", "model_lengthscale_action",
-           "model_data")
+JITTER = 1e-6  # relative diagonal jitter of K_ZZ (at least `jitter_floor`)
+RECORDS = ("model_return", "model_gain", "model_error", "model_reward_error", "model_std",
+           "model_lengthscale_action", "model_data")
 
 
 class ModelData(NamedTuple):
@@ -71,11 +78,13 @@ class ModelData(NamedTuple):
 
     Attributes:
       inputs: (C, D) GP inputs (z, a).
-      targets: (C, E) changes of the normalised observation.
+      targets: (C, E) changes of the normalised observation (and, for a learnt reward, a last
+        column: the decision's reward).
       valid: (C,) bool, the slots that hold a transition before its episode's end.
       count: () int32, transitions written so far (the next slot is count mod C).
-      log_kernels: `hyperfit.LogParams` with a leading (E,) axis: the current kernels, in logs.
-      hallucination: (E,) controller parameters of the optimistic exploration's eta (zeros for the
+      log_kernels: `hyperfit.LogParams` with a leading (E,) axis (one per column of `targets`): the
+        current kernels, in logs.
+      hallucination: (obs_dim,) controller parameters of the optimistic exploration's eta (zeros for the
         other choices).
     """
 
@@ -136,6 +145,34 @@ def next_of(task, obs, delta):
         idx = jnp.asarray(task.angles)
         nxt = nxt.at[..., idx].set(jnp.mod(nxt[..., idx], 2.0 * jnp.pi))
     return nxt
+
+
+def learns_reward(task, static) -> bool:
+    """Whether gp_model learns the task's reward (`TrainConfig.model_reward`): asked to, or 'auto'
+    for a task that does not state it."""
+    return static.model_reward == "learned" or (static.model_reward == "auto"
+                                                 and task.reward_fn is None)
+
+
+def decision_rewards(hold: int, rewards):
+    """(N, T) rewards summed over each decision of `hold` control steps: (N, T // hold) (a last,
+    incomplete hold dropped, as `decisions` drops it)."""
+    n, t = rewards.shape
+    k = t // hold
+    return jnp.sum(rewards[:, : k * hold].reshape(n, k, hold), axis=-1)
+
+
+def stated_reward(task, hold: int, obs, action, nxt, end=None):
+    """A decision's reward from the task's statement (`Task.reward_fn`): `hold` times the reward of
+    the transition to the decision's end, of which only the last control step can end the episode
+    (an end's bonus counts once). `end`: the end's indicator or probability (None: a task that
+    never ends early)."""
+    if end is None:
+        return hold * task.reward_fn(obs, action, nxt)
+    r = task.reward_fn(obs, action, nxt, end)
+    if hold > 1:  # the hold's other steps do not end it
+        r = r + (hold - 1) * task.reward_fn(obs, action, nxt, jnp.zeros_like(end))
+    return r
 
 
 def empty_data(capacity: int, input_dim: int, output_dim: int, dtype, hallucination) -> ModelData:
@@ -207,12 +244,28 @@ def farthest_points(xs, valid, lengthscales, m: int):
     return xs[idx], mask
 
 
+def jitter_floor(dtype, m: int) -> float:
+    """The least relative jitter with which K_ZZ + jitter sigma_f^2 I of m inducing inputs has a
+    Cholesky factor in `dtype` however close the inputs are (in the length-scales): 4 m eps.
+    Measured in float32 on inputs whose kernel matrix is nearly sigma_f^2 11^T (length-scales
+    10-10^4 times the inputs' spread), the factorisation fails below about m eps / 2 (m = 100-400);
+    in float64 the floor is far below `JITTER`."""
+    return 4.0 * m * float(jnp.finfo(dtype).eps)
+
+
 def condition(inducing, inducing_mask, kern: kernels.KernelParams, xs, ys, valid, *,
               jitter: float = JITTER) -> SparseModel:
     """The sparse GP of one output conditioned on (xs, ys) where `valid` (module notes); vmap over
-    outputs. ys is the (N,) target, its prior mean 0; `jitter` is relative to sigma_f^2."""
+    outputs. ys is the (N,) target, its prior mean 0; `jitter` is relative to sigma_f^2 (raised
+    to `jitter_floor`).
+
+    B = I + A A^T has condition number up to 1 + N sigma_f^2 / sigma_n^2: with a task's nearly
+    deterministic transitions that is past float32's resolution, and its Cholesky factor fails.
+    In float32 L_B is therefore the triangular factor of the QR decomposition of [I; A^T]
+    (R^T R = B, without forming B); float64 resolves B and factors it directly."""
     m = inducing.shape[0]
     dtype = xs.dtype
+    jitter = max(jitter, jitter_floor(dtype, m))
     pair = inducing_mask[:, None] & inducing_mask[None, :]
     kzz = kernels.gram(inducing, inducing, kern)
     kzz = jnp.where(pair, kzz, jnp.eye(m, dtype=dtype))
@@ -222,8 +275,11 @@ def condition(inducing, inducing_mask, kern: kernels.KernelParams, xs, ys, valid
     kzx = jnp.where(inducing_mask[:, None] & valid[None, :], kzx, 0.0)
     sn = jnp.sqrt(kern.noise_variance)
     a = jax.scipy.linalg.solve_triangular(chol, kzx, lower=True) / sn
-    b = jnp.eye(m, dtype=dtype) + a @ a.T
-    chol_b = jnp.linalg.cholesky(b)
+    if dtype == jnp.float64:
+        chol_b = jnp.linalg.cholesky(jnp.eye(m, dtype=dtype) + a @ a.T)
+    else:
+        r = jnp.linalg.qr(jnp.concatenate([jnp.eye(m, dtype=dtype), a.T]), mode="r")
+        chol_b = (r * jnp.where(jnp.diagonal(r) < 0, -1.0, 1.0).astype(dtype)[:, None]).T
     c = jax.scipy.linalg.solve_triangular(chol_b, a @ jnp.where(valid, ys, 0.0), lower=True) / sn
     mean_v = jax.scipy.linalg.solve_triangular(chol_b.T, c, lower=False)
     weights = jax.scipy.linalg.solve_triangular(chol.T, mean_v, lower=False)
@@ -351,8 +407,7 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
     """The mean over particles of the simulated returns: undiscounted sums of the task's reward
     over the plan's steps, each weighed by the particle's probability of being alive. A model step
     is one decision of k = `prog.hold` control steps, whose steps in between are not simulated:
-    its reward is k times the reward of the transition to the decision's end, of which only the
-    last can end the episode (an end's bonus counts once). A task
+    its reward is the learnt reward's output (`learns_reward`), or `stated_reward`. A task
     with an end margin (`Task.end_margin`) ends a step with probability sigmoid(margin /
     `end_softness`), a smoothed end whose gradient reaches the controller where the hard end's
     is 0 (its reward, where the end enters it, takes that probability too); a task with only
@@ -363,7 +418,8 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
         raise ValueError("an optimistic roll-out reads the model's variance factors: make its plan "
                          "with exploration 'optimistic'")
     noise_std = jnp.sqrt(model.kernels.noise_variance)  # (E,)
-    hold = prog.hold
+    hold, e = prog.hold, task.obs_dim
+    learned = learns_reward(task, prog.config)
 
     def end_probability(nxt):
         if task.end_margin is not None:
@@ -376,18 +432,17 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
             a = controller.apply(controller_params, obs)
             x = task.features(obs, a)
             ks = _k_star(model, x)
-            delta = jnp.sum(ks * w, axis=-1) + target_mean + noise_std * eps_t
+            out = jnp.sum(ks * w, axis=-1) + target_mean
+            delta = out[:e] + noise_std[:e] * eps_t[:e]
             if hallucination is not None:
-                var = fast_variance(model, plan.variance, ks)
+                var = fast_variance(model, plan.variance, ks)[:e]
                 eta = jax.vmap(lambda p: controller.apply(p, obs))(hallucination) / controller.u_max
                 delta = delta + beta * jnp.sqrt(var) * eta
             nxt = next_of(task, obs, delta)
-            if task.end_fn is None:
-                return (nxt, alive), hold * task.reward_fn(obs, a, nxt)
-            p_end = end_probability(nxt)
-            r = task.reward_fn(obs, a, nxt, p_end)
-            if hold > 1:  # the hold's other steps do not end it
-                r = r + (hold - 1) * task.reward_fn(obs, a, nxt, jnp.zeros_like(p_end))
+            p_end = None if task.end_fn is None else end_probability(nxt)
+            r = out[e] if learned else stated_reward(task, hold, obs, a, nxt, p_end)
+            if p_end is None:
+                return (nxt, alive), r
             return (nxt, alive * (1.0 - p_end)), alive * r
 
         _, rewards = jax.lax.scan(step, (obs0, jnp.ones((), obs0.dtype)), eps)
@@ -464,6 +519,13 @@ def decisions(hold: int, obs, next_obs, actions, alive=None, ends=None):
             jnp.all(blocks(valid), axis=2))
 
 
+def _relative_error(pred, target, valid):
+    """sum (pred - target)^2 / sum target^2 over the valid rows (1 - R^2 about 0)."""
+    w = valid.reshape(valid.shape + (1,) * (target.ndim - 1))
+    err = jnp.sum((pred - target) ** 2 * w)
+    return err / jnp.maximum(jnp.sum(target ** 2 * w), jnp.finfo(target.dtype).tiny)
+
+
 def init(prog, key, cfg):
     del key
     task, static = prog.task, prog.config
@@ -471,7 +533,8 @@ def init(prog, key, cfg):
                    * (static.episode_length // prog.hold))
     zeros = prog.controller.init(prog.dtype)
     hallucination = jax.tree_util.tree_map(lambda a: jnp.zeros((task.obs_dim,) + a.shape, a.dtype), zeros)
-    return empty_data(capacity, task.feature_dim, task.obs_dim, prog.dtype, hallucination)
+    outputs = task.obs_dim + learns_reward(task, static)
+    return empty_data(capacity, task.feature_dim, outputs, prog.dtype, hallucination)
 
 
 def update(prog, cfg, state, batch):
@@ -483,21 +546,33 @@ def update(prog, cfg, state, batch):
     eps = batch.episodes
     obs, nxt, acts = eps.states, eps.next_states, eps.actions
     obs, nxt, acts, valid = decisions(prog.hold, obs, nxt, acts, eps.alive, eps.ends)
-    d = task.feature_dim
+    d, e = task.feature_dim, task.obs_dim
     xs = jax.vmap(lambda s, a: rollouts.features(prog, s, a))(obs, acts).reshape(-1, d)
-    ys = targets_of(task, obs, nxt).reshape(-1, task.obs_dim)
+    ys = targets_of(task, obs, nxt).reshape(-1, e)
+    rewards = decision_rewards(prog.hold, eps.rewards).reshape(-1)
     valid = valid.reshape(-1)
+    learned = learns_reward(task, static)
+    if learned:
+        ys = jnp.concatenate([ys, rewards[:, None]], axis=1)
     key = jax.random.fold_in(state.key, 7)
     k_fit, k_plan, k_err = jax.random.split(key, 3)
 
-    # the model's error on this update's transitions before it takes them in (data it has not seen)
-    # (1 on the first update, whose model is the prior: its prediction is 0)
+    # the model's error on this update's transitions before it takes them in (data it has not
+    # seen; 1 on the first update, whose model is the prior: its prediction is 0), and the reward's
+    # (the learnt one's before it takes them in, or the stated one's)
     first = data.count == 0
     model_old, mean_old = build(data, static.model_inducing)
     pred = jax.vmap(lambda x: predict(model_old, x)[0])(xs) + mean_old
-    err = jnp.sum(((pred - ys) ** 2) * valid[:, None])
-    spread = jnp.sum(ys ** 2 * valid[:, None])
-    model_error = err / jnp.maximum(spread, jnp.finfo(ys.dtype).tiny)
+    model_error = _relative_error(pred[:, :e], ys[:, :e], valid)
+    if learned:
+        reward_pred = pred[:, e]
+    else:
+        flat = lambda v: v.reshape((-1,) + v.shape[2:])  # noqa: E731
+        o, a, n = flat(obs), flat(acts), flat(nxt)
+        end = None if task.end_fn is None else jax.vmap(task.end_fn)(n).astype(o.dtype)
+        reward_pred = jax.vmap(lambda *t: stated_reward(task, prog.hold, *t))(
+            o, a, n, *(() if end is None else (end,)))
+    model_reward_error = _relative_error(reward_pred, rewards, valid)
 
     data = take_in(data, xs, ys, valid)
     data = data._replace(log_kernels=refit(k_fit, data, subset_size=static.model_fit_subset,
@@ -519,8 +594,9 @@ def update(prog, cfg, state, batch):
         model_return=after,
         model_gain=after - before,
         model_error=model_error,
-        model_std=jnp.mean(jnp.sqrt(kern.noise_variance)),
-        model_lengthscale_action=jnp.exp(jnp.mean(jnp.log(kern.lengthscales[:, -1]))),
+        model_reward_error=model_reward_error,
+        model_std=jnp.mean(jnp.sqrt(kern.noise_variance[:e])),
+        model_lengthscale_action=jnp.exp(jnp.mean(jnp.log(kern.lengthscales[:e, -1]))),
         model_data=jnp.sum(data.valid).astype(prog.dtype),
     )
     return theta, state.opt_state, data, {k: jnp.asarray(v, prog.dtype) for k, v in records.items()}
@@ -530,9 +606,10 @@ def check(cfg) -> None:
     from gpguided_jax import exploration, tasks
 
     task = tasks.make_task(cfg.env)
-    if task.reward_fn is None:
-        raise ValueError(f"TrainConfig.env: gp_model plans with the task's reward as a function of "
-                         f"the transition, which {cfg.env} does not state (tasks.Task.reward_fn)")
+    if task.reward_fn is None and cfg.model_reward == "stated":
+        raise ValueError(f"TrainConfig.model_reward: 'stated' plans with the task's reward as a "
+                         f"function of the transition, which {cfg.env} does not state "
+                         f"(tasks.Task.reward_fn); 'learned' or 'auto' learns it")
     hold = exploration.hold_steps(cfg.hold_time, config.control_interval(cfg))
     if hold > cfg.episode_length:
         raise ValueError(f"TrainConfig.hold_time: a hold of {hold} control steps is longer than "
