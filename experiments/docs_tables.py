@@ -597,11 +597,13 @@ def model_table(task: str) -> str:
     with open(os.path.join(RESULTS, path)) as f:
         d = json.load(f)
     measure = d["measure"]
+    learned = any("reward_error_last" in r for r in d["rows"])  # runs with the reward learnt
     lines = ["| method | seeds reaching the threshold | environment steps to it, median | "
              f"wall time to it, median | final {measure}, mean | seeds above it at the end | "
              "P(better than the mean model) | model error 1 − R², second update / last | "
-             "simulated return, last update |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             + ("learnt reward's error, second update / last | " if learned else "")
+             + "simulated return, last update |",
+             "|---|---|---|---|---|---|---|---|---|" + ("---|" if learned else "")]
     for r in d["rows"]:
         wall = r.get("wall_to_threshold_median")
         p = r.get("p_improvement_over_mean")
@@ -613,6 +615,8 @@ def model_table(task: str) -> str:
                      f"{'–' if wall is None else f'{wall:.0f} s'} | {final} | "
                      f"{r['seeds_above_at_end']}/{r['seeds']} | "
                      f"{'–' if p is None else f'{p:.2f}'} | {err} | "
+                     + ((f"{r['reward_error_second']:.3f} / {r['reward_error_last']:.3f} | "
+                         if "reward_error_last" in r else "– | ") if learned else "")
                      + (f"{r['model_return_last']:.1f} |" if "model_return_last" in r else "– |"))
     seeds = d["seeds"]
     if measure == "success rate":
@@ -637,7 +641,11 @@ def model_table(task: str) -> str:
                  "(Mann–Whitney). "
                  "Model error: the model's prediction of an update's new transitions before it "
                  "took them in, 1 − R² over the observation's coordinates, median over seeds. "
-                 "Simulated return: the mean return of the model's particle roll-outs over the "
+                 + ("Learnt reward's error: its prediction of an update's new decisions' rewards "
+                    "before it took them in, Σ(r̂ − r)² / Σr², median over seeds (reward learned: "
+                    "the same tuned settings, the reward learnt by the model instead of the "
+                    "task's stated one). " if learned else "")
+                 + "Simulated return: the mean return of the model's particle roll-outs over the "
                  f"planning horizon ({d['horizon_steps']} steps) after the last update's "
                  "optimisation, median over seeds. "
                  + _source(path))

@@ -16,7 +16,9 @@ Stages, per task; each writes under --out (default docs/results/model/<task>):
 ``heldout`` Held-out seeds (1000-1009; 1000-1019 for the swing-up): gp_model with the tuned
             settings under each of the model's exploration choices (`model_based.EXPLORATIONS`;
             --only: which), each alone through `gpguided reproduce`'s driver. Writes
-            heldout/<choice>.npz and .json (resumes as the standard tasks' study does).
+            heldout/<choice>.npz and .json (resumes as the standard tasks' study does). With
+            --reward learned: the same runs with the reward learnt by the model instead of the
+            task's stated one (`model_reward`), heldout/<choice>_learned.npz and .json.
 ``report``  heldout_table.json (seeds reaching the threshold, environment steps and wall time to
             it, final return, and each choice's probability of improvement over the mean model)
             and the figure (return against environment steps, log axis, beside SAC, PPO and the
@@ -25,6 +27,7 @@ Stages, per task; each writes under --out (default docs/results/model/<task>):
 Usage:
   python experiments/model_study.py tune --task pendulum-v1
   python experiments/model_study.py heldout --task pendulum-v1
+  python experiments/model_study.py heldout --task pendulum-v1 --only thompson --reward learned
   python experiments/model_study.py report --task pendulum-v1
   (--task mountaincar-continuous, inverted-pendulum, inverted-double-pendulum, swingup: the
   same three stages)
@@ -175,22 +178,30 @@ def tune(task: str, out: str) -> None:
     study.log(f"wrote {path}: {result['chosen']}")
 
 
-def heldout(task: str, out: str, seeds, only) -> None:
+def _name(choice: str, reward: str) -> str:
+    """A held-out run's file name: the exploration choice, '_learned' for a learnt reward."""
+    return choice + ("_learned" if reward == "learned" else "")
+
+
+def heldout(task: str, out: str, seeds, only, reward: str = "stated") -> None:
     chosen = study.read_json(os.path.join(out, "tuning.json"), {}).get("chosen", {})
     for choice in only:
-        settings = {**chosen, "model_exploration": choice}
+        settings = {**chosen, "model_exploration": choice,
+                    **({"model_reward": "learned"} if reward == "learned" else {})}
         meta = {"seeds": list(seeds), "settings": settings}
-        path = os.path.join(out, "heldout", choice)
+        name = _name(choice, reward)
+        path = os.path.join(out, "heldout", name)
         if study.finished(path + ".json", **meta):
-            study.log(f"[{task} {choice}] done with these seeds and settings: {path}.json")
+            study.log(f"[{task} {name}] done with these seeds and settings: {path}.json")
             continue
         # a chunk per update: an update takes minutes on the brax tasks, and the run reports its
         # progress and saves its checkpoint after each chunk
-        run = study.run_method(task, METHOD, seeds, os.path.join(out, "runs", choice),
+        run = study.run_method(task, METHOD, seeds, os.path.join(out, "runs", name),
                                overrides(task, settings), chunk_size=1)
         os.makedirs(os.path.dirname(path), exist_ok=True)
         np.savez(path + ".npz", steps=run.env_steps, measure=run.records[measure(task)[0]],
-                 model_error=run.records["model_error"])
+                 model_error=run.records["model_error"],
+                 model_reward_error=run.records["model_reward_error"])
         study.write_json(path + ".json", {**meta, "wall_s": run.wall_s})
 
 
@@ -250,22 +261,29 @@ def _others(task: str, seeds: list) -> dict:
 def report(task: str, out: str) -> None:
     record, threshold, measure_name = measure(task)
     rows, curves = [], {}
-    for choice in model_based.EXPLORATIONS:
-        p = os.path.join(out, "heldout", choice)
+    runs = [(c, r) for r in ("stated", "learned") for c in model_based.EXPLORATIONS]
+    for choice, reward in runs:
+        p = os.path.join(out, "heldout", _name(choice, reward))
+        label = f"gp_model ({choice}{', reward learned' if reward == 'learned' else ''})"
         if os.path.exists(p + ".npz"):
             with np.load(p + ".npz") as f:
-                curves[f"gp_model ({choice})"] = (f["steps"], np.asarray(f["measure"], float))
+                curves[label] = (f["steps"], np.asarray(f["measure"], float))
                 error = np.asarray(f["model_error"], float)  # (seeds, updates)
+                reward_error = (np.asarray(f["model_reward_error"], float)
+                                if reward == "learned" else None)
             meta = study.read_json(p + ".json")
-            rows.append(_row(f"gp_model ({choice})", *curves[f"gp_model ({choice})"], threshold,
-                             meta["wall_s"], meta["seeds"]))
+            rows.append(_row(label, *curves[label], threshold, meta["wall_s"], meta["seeds"]))
             # the model's error on each update's new transitions before it took them in, 1 - R^2:
-            # the median over seeds, at the second update and at the last
+            # the median over seeds, at the second update and at the last (and the learnt
+            # reward's)
             rows[-1]["model_error_second"] = float(np.median(error[:, 1]))
             rows[-1]["model_error_last"] = float(np.median(error[:, -1]))
+            if reward_error is not None:
+                rows[-1]["reward_error_second"] = float(np.median(reward_error[:, 1]))
+                rows[-1]["reward_error_last"] = float(np.median(reward_error[:, -1]))
             # the simulated return after the last update's optimisation, median over seeds, and
             # its ceiling where the reward is bounded per step (brax's pendulum: 1 per step)
-            run = os.path.join(out, "runs", choice, "results.npz")
+            run = os.path.join(out, "runs", _name(choice, reward), "results.npz")
             if os.path.exists(run):
                 with np.load(run) as f:
                     rows[-1]["model_return_last"] = float(np.median(f["model_return"][0][:, -1]))
@@ -317,6 +335,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None)
     p.add_argument("--only", nargs="+", default=list(model_based.EXPLORATIONS),
                    choices=model_based.EXPLORATIONS)
+    p.add_argument("--reward", choices=("stated", "learned"), default="stated",
+                   help="heldout: the task's stated reward (default) or one the model learns")
     args = p.parse_args(argv)
     runtime.single_threaded_lapack()
     runtime.set_compile_cache(runtime.DEFAULT_COMPILE_CACHE)
@@ -326,7 +346,7 @@ def main(argv=None) -> int:
     if args.stage == "tune":
         tune(args.task, out)
     elif args.stage == "heldout":
-        heldout(args.task, out, heldout_seeds(args.task), args.only)
+        heldout(args.task, out, heldout_seeds(args.task), args.only, args.reward)
     else:
         report(args.task, out)
     return 0
