@@ -68,7 +68,10 @@ from gpguided_jax import config as config_lib  # noqa: E402
 from gpguided_jax import stats as stats_lib  # noqa: E402
 from gpguided_jax import train as train_lib  # noqa: E402
 
-METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction")  # `GRID`
+# the paper's four (`GRID`) and gp_critic (`gpguided_jax.critic`: gp_pg's step and K steps
+# against the GP critic), which the reach stage leaves out (its initial policy is gp_pg's)
+PAPER_METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction")
+METHODS = (*PAPER_METHODS, "gp_critic")
 TUNING_SEEDS = study.TUNING_SEEDS
 HELDOUT_SEEDS = tuple(range(1000, 1020))
 REACH_SEEDS = tuple(range(1000, 1010))
@@ -117,6 +120,7 @@ REACH_SCHEMES = {k: {**SCHEME_BASE, **v} for k, v in REACH_SCHEMES.items()}
 AMPLITUDE = {
     "reinforce": ("init_log_std", [LN(1.5), LN(4.0)]),
     "gp_pg": ("init_log_std", [LN(1.5), LN(4.0)]),
+    "gp_critic": ("init_log_std", [LN(1.5), LN(4.0)]),
     "guided_variance": ("guided_variance_scale", [2.25, 16.0]),
     "guided_direction": ("candidate_scale", [2.25, 16.0]),
 }
@@ -132,8 +136,15 @@ GRID = {
     "gp_pg": ("ou_0.5s", "hold_0.5s"),
     "guided_variance": ("ou_0.5s", "hold_0.5s"),
     "guided_direction": ("hold_0.2s", "hold_0.5s"),  # white only: its choice is held
+    "gp_critic": ("ou_0.5s", "hold_0.5s"),
 }
 FIXED = {"use_baseline": True}
+# gp_critic's grid is over its own step size (critic_learning_rate, default 0.01, between the
+# values) in place of the learning rate, which stays at the rate every one of the four chose
+# (0.03, tuning.json); K and the trust region at their defaults (50 steps, 0.05 nats)
+RATES = {m: ("learning_rate", LEARNING_RATES) for m in PAPER_METHODS}
+RATES["gp_critic"] = ("critic_learning_rate", (0.003, 0.01, 0.03))
+FIXED_OF = {"gp_critic": {"learning_rate": 0.03}}
 CONFIGS_PER_METHOD = 12
 # The parameter-noise schemes (reinforce and gp_pg only) and guided_direction's optimistic
 # scores were added to the ablation after the tuning above, at each method's chosen learning
@@ -146,6 +157,7 @@ ABLATION = {
     "guided_variance": ("white", "ou_0.5s", "coloured_2", "hold_0.5s"),
     "guided_direction": ("white", "hold_0.2s", "hold_0.5s", "hold_0.2s_optimism_1",
                          "hold_0.2s_optimism_3"),
+    "gp_critic": ("white", "ou_0.5s", "hold_0.5s"),
 }
 DTYPE = "float32"
 
@@ -215,7 +227,7 @@ def reach(out: str) -> dict:
     done = {(r["method"], r["scheme"], r[AMPLITUDE[r["method"]][0]]): r
             for r in study.read_json(path, {"rows": []})["rows"]}
     rows = []
-    for method in METHODS:
+    for method in PAPER_METHODS:
         field, amplitudes = AMPLITUDE[method]
         for name, scheme in REACH_SCHEMES.items():
             if method == "guided_direction" and scheme["exploration"] != "white":
@@ -258,16 +270,17 @@ def _reach_one(cfg) -> tuple[float, float]:
 
 
 def tune(out: str, only=None) -> dict:
-    """The grid (`GRID`: scheme x horizon x learning rate) of each method on the tuning seeds: a
-    coordinate search whose every stage sets every parameter (one stage per scheme and horizon,
-    its learning rates one sweep). Writes tuning.json."""
+    """The grid (`GRID`: scheme x horizon x learning rate, `RATES`) of each method on the tuning
+    seeds: a coordinate search whose every stage sets every parameter (one stage per scheme and
+    horizon, its learning rates one sweep). Writes tuning.json."""
     header = {"seeds": list(TUNING_SEEDS), "dtype": DTYPE,
               "env_steps": study.learning_steps(preset("reinforce"))}
     rep = None
     for method in only or METHODS:
         field, amplitudes = AMPLITUDE[method]
-        grid = [[{"scheme": scheme, **FIXED, field: amplitudes[-1], "discount_horizon": horizon,
-                  "learning_rate": lr} for lr in LEARNING_RATES]
+        rate, rates = RATES[method]
+        grid = [[{"scheme": scheme, **FIXED, **FIXED_OF.get(method, {}), field: amplitudes[-1],
+                  "discount_horizon": horizon, rate: lr} for lr in rates]
                 for scheme in GRID[method] for horizon in HORIZONS]
 
         def evaluate(configs, method=method):
