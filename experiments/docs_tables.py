@@ -381,7 +381,11 @@ def standard_table(task: str) -> str:
 
 def standard_critic_table(task: str) -> str:
     """`experiments/standard_tasks.py report`: what would limit the critic, on one task."""
-    path = os.path.join("standard", task, "critic_diagnostics.json")
+    return critic_table(os.path.join("standard", task, "critic_diagnostics.json"))
+
+
+def critic_table(path: str) -> str:
+    """`study.critic_diagnostics`' file: what would limit the critic in a study's runs."""
     with open(os.path.join(RESULTS, path)) as f:
         d = json.load(f)
     lines = ["| method | critic error 1 − R², first 10% of updates | last 10% | action length-scale, "
@@ -465,13 +469,18 @@ def exploration_tuning_table() -> str:
     for name, r in d["methods"].items():
         for t in r["tried"]:
             s = t["settings"]
-            lines.append(f"| {name} | {s['scheme']} | {s['discount_horizon']:g} | "
-                         f"{s['learning_rate']:.3g} | {t['success']:.2f} | {t['reward']:.3f} | "
+            rate = f"{s['learning_rate']:.3g}" + (f"; critic {s['critic_learning_rate']:.3g}"
+                                                   if "critic_learning_rate" in s else "")
+            lines.append(f"| {name} | {s['scheme']} | {s['discount_horizon']:g} | {rate} | "
+                         f"{t['success']:.2f} | {t['reward']:.3f} | "
                          f"{'yes' if s == r['chosen'] else ''} |")
     lines.append("")
     lines.append(f"Tuning seeds {d['seeds']} ({d['dtype']}), {d['env_steps']:,} environment steps "
                  "per run; success and reward per step of the deterministic policy at the end of "
-                 "the run. " + _source(path))
+                 "the run. "
+                 + ("Learning rate, gp_critic: its gp_pg step's, then its surrogate's "
+                    "(`critic_learning_rate`). " if "gp_critic" in d["methods"] else "")
+                 + _source(path))
     return "\n".join(lines)
 
 
@@ -700,6 +709,8 @@ TABLES = {
     "exploration_mountaincar": lambda: exploration_standard_table("mountaincar-continuous"),
     "exploration_pendulum_v1": lambda: exploration_standard_table("pendulum-v1"),
     **{f"standard_{t.replace('-', '_')}": (lambda t=t: standard_table(t)) for t in STANDARD_TASKS},
+    "exploration_critic": lambda: critic_table(os.path.join("exploration",
+                                                            "critic_diagnostics.json")),
     **{f"standard_critic_{t.replace('-', '_')}": (lambda t=t: standard_critic_table(t))
        for t in ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
                  "inverted-double-pendulum")},

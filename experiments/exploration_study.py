@@ -427,7 +427,9 @@ def report(out: str) -> str:
     kept = {f"{r['method']}/{r['scheme']}": r for r in previous["rows"]}
     have = {key: os.path.exists(os.path.join(out, "heldout", *key.split("/"), "results.npz"))
             for key in meta["runs"]}
-    draw = all(have.values())
+    # the figure shows each method's chosen scheme; the guidance compares every scheme's runs
+    draw = all(have[k] for k in meta["runs"] if k.split("/")[1] == chosen[k.split("/")[0]])
+    guide = all(have.values())
     finals = {}
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     order = [f"{m}/{x}" for m in METHODS for x in ABLATION[m]]
@@ -465,9 +467,9 @@ def report(out: str) -> str:
                 wall_s=run["wall_s"], **steps_to_row(steps, success)))
             for ax, y in zip(axes, (success, reward)):
                 study.plot_band(ax, steps, y, alpha=0.15, ls="--", label=f"{name} (brax, re-tuned)")
-    if not draw:
+    if not guide:
         table["guidance"] = previous["guidance"]
-    for scheme in ("ou_0.5s", "coloured_2", "hold_0.5s") if draw else ():
+    for scheme in ("ou_0.5s", "coloured_2", "hold_0.5s") if guide else ():
         a, b = f"guided_variance/{scheme}", f"gp_pg/{scheme}"
         if a in finals and b in finals:
             p = stats_lib.probability_of_improvement(finals[a], finals[b])
@@ -485,9 +487,15 @@ def report(out: str) -> str:
     if draw:
         fig.savefig(os.path.join(out, "exploration_swingup.png"), dpi=120)
     else:
-        log("the curves of some runs are not here: their rows kept, the figure not redrawn")
+        log("the curves of a chosen run are not here: the figure not redrawn")
+    if not guide:
+        log("the curves of some runs are not here: their rows and the guidance kept")
     plt.close(fig)
     study.write_json(os.path.join(out, "heldout_table.json"), table)
+    study.critic_diagnostics({f"gp_critic ({scheme})": os.path.join(out, "heldout", "gp_critic",
+                                                                   scheme, "results.npz")
+                              for scheme in ABLATION["gp_critic"]},
+                             os.path.join(out, "critic_diagnostics.json"))
     return json.dumps(table["rows"], indent=1)
 
 

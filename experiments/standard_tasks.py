@@ -346,37 +346,9 @@ def report(task: str, out: str) -> None:
         "task": task, "threshold": threshold, "seeds": meta["seeds"], "rows": rows,
         "budget": budget(task), "fit_steps": fit_steps, "reference": REFERENCES.get(task)})
     study.log(f"wrote {figure} and {out}/heldout_table.json")
-    critic_diagnostics(out, [n for n in (*METHODS, *RESTARTED) if n in names])
-
-
-def critic_diagnostics(out: str, names) -> None:
-    """critic_diagnostics.json: for each held-out run (methods/<name>/results.npz) that records
-    the critic, what would limit it, over its seeds: the critic's error on returns it had not seen
-    (1 - R^2), over the first 10% and the last 10% of updates; the action length-scale of its
-    kernel; and the fraction of the surrogate's move the trust region let through and the mean
-    KL, over the last 10%. A run whose results.npz is not here keeps its earlier file."""
-    rows = []
-    for n in names:
-        path = os.path.join(out, "methods", n, "results.npz")
-        if not os.path.exists(path):
-            continue
-        with np.load(path) as f:
-            if "critic_error" not in f.files:
-                continue
-            rec = {k: np.asarray(f[k][0], float) for k in
-                   ("critic_error", "action_lengthscale", "critic_step_fraction", "critic_kl")}
-        tail = max(1, int(round(0.1 * rec["critic_error"].shape[1])))
-        ls = rec["action_lengthscale"][:, 0]
-        rows.append(dict(
-            method=n, seeds=int(ls.size),
-            error_first=float(np.median(rec["critic_error"][:, :tail])),
-            error_last=float(np.median(rec["critic_error"][:, -tail:])),
-            lengthscale_median=float(np.median(ls)), lengthscale_min=float(ls.min()),
-            lengthscale_max=float(ls.max()),
-            fraction_last=float(np.median(rec["critic_step_fraction"][:, -tail:])),
-            kl_last=float(np.median(rec["critic_kl"][:, -tail:]))))
-    if rows:
-        study.write_json(os.path.join(out, "critic_diagnostics.json"), {"rows": rows})
+    study.critic_diagnostics({n: os.path.join(out, "methods", n, "results.npz")
+                              for n in (*METHODS, *RESTARTED) if n in names},
+                             os.path.join(out, "critic_diagnostics.json"))
 
 
 def main(argv=None) -> int:

@@ -363,6 +363,36 @@ def run_parts(path: str, header: dict, parts: dict, run: Callable[[str, dict], d
 # ---------------------------------------------------------------------------------------- reports
 
 
+def critic_diagnostics(runs: dict, path: str) -> None:
+    """What would limit gp_critic in held-out runs, written to `path` (JSON): for each run
+    (name -> its results.npz) that records the critic, over its seeds, the critic's error on
+    returns it had not seen (1 - R^2) over the first 10% and the last 10% of updates, the action
+    length-scale of its kernel, and the fraction of the surrogate's move the trust region let
+    through and the mean KL over the last 10%. A run whose results.npz is not here is left out;
+    with none, the earlier file is kept."""
+    rows = []
+    for name, results in runs.items():
+        if not os.path.exists(results):
+            continue
+        with np.load(results) as f:
+            if "critic_error" not in f.files:
+                continue
+            rec = {k: np.asarray(f[k][0], float) for k in
+                   ("critic_error", "action_lengthscale", "critic_step_fraction", "critic_kl")}
+        tail = max(1, int(round(0.1 * rec["critic_error"].shape[1])))
+        ls = rec["action_lengthscale"][:, 0]
+        rows.append(dict(
+            method=name, seeds=int(ls.size),
+            error_first=float(np.median(rec["critic_error"][:, :tail])),
+            error_last=float(np.median(rec["critic_error"][:, -tail:])),
+            lengthscale_median=float(np.median(ls)), lengthscale_min=float(ls.min()),
+            lengthscale_max=float(ls.max()),
+            fraction_last=float(np.median(rec["critic_step_fraction"][:, -tail:])),
+            kl_last=float(np.median(rec["critic_kl"][:, -tail:]))))
+    if rows:
+        write_json(path, {"rows": rows})
+
+
 def final(curves) -> np.ndarray:
     """Per seed: the mean of the last 10% of a curve's points ((seeds, points) -> (seeds,))."""
     return summaries.final_performance(np.asarray(curves, float))

@@ -240,3 +240,25 @@ def test_plot_band_draws_the_mean_and_its_band_in_one_colour():
     assert np.allclose(band.get_facecolor()[0][:3], matplotlib.colors.to_rgb("C3"))
     plt.close(fig)
     assert math.isclose(band.get_alpha(), 0.2)
+
+
+def test_critic_diagnostics_reads_each_run_that_records_the_critic(tmp_path):
+    """Medians over seeds of the first and last 10% of updates (a loop in NumPy), the action
+    length-scale over seeds; a run without the critic's records, or not here, is left out."""
+    rng = np.random.default_rng(0)
+    seeds, updates = 3, 20
+    rec = {k: rng.uniform(size=(1, seeds, updates)) for k in
+           ("critic_error", "critic_step_fraction", "critic_kl")}
+    rec["action_lengthscale"] = rng.uniform(1, 2, size=(1, seeds, 1))
+    np.savez(tmp_path / "critic.npz", **rec)
+    np.savez(tmp_path / "plain.npz", eval_return=np.zeros((1, seeds, updates)))
+    out = tmp_path / "diag.json"
+    study.critic_diagnostics({"a": str(tmp_path / "critic.npz"), "b": str(tmp_path / "plain.npz"),
+                              "c": str(tmp_path / "absent.npz")}, str(out))
+    (row,) = json.loads(out.read_text())["rows"]
+    first = [rec["critic_error"][0, s, u] for s in range(seeds) for u in range(2)]
+    last = [rec["critic_kl"][0, s, u] for s in range(seeds) for u in range(18, 20)]
+    assert row["method"] == "a" and row["seeds"] == seeds
+    assert row["error_first"] == pytest.approx(float(np.median(first)))
+    assert row["kl_last"] == pytest.approx(float(np.median(last)))
+    assert row["lengthscale_max"] == pytest.approx(float(rec["action_lengthscale"].max()))
