@@ -58,6 +58,7 @@ gives the model its first data), the floor `min_std` from then on.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -84,8 +85,8 @@ class ModelData(NamedTuple):
       count: () int32, transitions written so far (the next slot is count mod C).
       log_kernels: `hyperfit.LogParams` with a leading (E,) axis (one per column of `targets`): the
         current kernels, in logs.
-      hallucination: (obs_dim,) controller parameters of the optimistic exploration's eta (zeros for the
-        other choices).
+      hallucination: (obs_dim,) controller parameters of the optimistic exploration's eta (zeros
+        for the other choices).
     """
 
     inputs: jax.Array
@@ -570,8 +571,7 @@ def update(prog, cfg, state, batch):
         flat = lambda v: v.reshape((-1,) + v.shape[2:])  # noqa: E731
         o, a, n = flat(obs), flat(acts), flat(nxt)
         end = None if task.end_fn is None else jax.vmap(task.end_fn)(n).astype(o.dtype)
-        reward_pred = jax.vmap(lambda *t: stated_reward(task, prog.hold, *t))(
-            o, a, n, *(() if end is None else (end,)))
+        reward_pred = jax.vmap(functools.partial(stated_reward, task, prog.hold))(o, a, n, end)
     model_reward_error = _relative_error(reward_pred, rewards, valid)
 
     data = take_in(data, xs, ys, valid)
