@@ -35,6 +35,9 @@ MODEL_OPTIMIZERS = ("adam", "lbfgs")
 # where gp_model's reward comes from: the task's own statement ('stated'), a GP learnt with the
 # dynamics ('learned'), or the first where the task states one ('auto')
 MODEL_REWARDS = ("auto", "stated", "learned")
+# gp_critic's GP targets: the paper's returns-to-go, or lambda-returns bootstrapped with the GP's
+# own mean (`gpguided_jax.critic`)
+CRITIC_TARGETS = ("returns", "lambda")
 
 STATIC_FIELDS = (
     "method",
@@ -65,6 +68,7 @@ STATIC_FIELDS = (
     "episode_end",
     "critic_steps",
     "critic_optimism",
+    "critic_targets",
     "model_capacity",
     "model_inducing",
     "model_fit_subset",
@@ -148,6 +152,8 @@ class TrainConfig:
       critic_optimism: gp_critic's kappa: the surrogate scores a state by E_a Q_GP + kappa (E_a
         sigma_Q^2)^(1/2), sigma_Q the GP's latent standard deviation (> 0 optimistic, < 0
         pessimistic; 0, the default: the mean alone). The other methods ignore it.
+      critic_targets: gp_critic's GP targets: 'returns' (default; the paper's returns-to-go) or
+        'lambda' (lambda-returns bootstrapped with the GP's own mean, `critic.lambda_returns`).
       model_capacity, model_inducing, model_fit_subset, model_fit_steps, model_particles,
         model_steps, model_horizon, model_exploration, model_optimizer: gp_model's transitions
         kept, inducing inputs, the refit's subset and Adam steps, simulated particles, optimiser
@@ -184,6 +190,9 @@ class TrainConfig:
       critic_learning_rate: gp_critic's Adam step size on the surrogate.
       trust_region: gp_critic's delta, the bound on the mean KL (nats) between the policy that
         gathered an update's episodes and the improved one, over the update's decision states.
+      critic_lambda_horizon: gp_critic's lambda as a horizon (seconds): lambda = exp(-dt /
+        horizon) per control step dt, for `critic_targets='lambda'` (inf: 1, the returns with the
+        GP's mean where an episode is cut at its length; small: one-step targets).
       model_learning_rate: gp_model's Adam step size on the simulated return.
       model_beta: gp_model's optimism, the confidence multiple of the hallucinated control.
       model_end_softness: gp_model's smoothing of a task's end in its simulated roll-outs (the
@@ -219,6 +228,7 @@ class TrainConfig:
     episode_end: str = "mask"
     critic_steps: int = 50
     critic_optimism: float = 0.0
+    critic_targets: str = "returns"
     model_capacity: int = 4000
     model_inducing: int = 200
     model_fit_subset: int = 300
@@ -249,6 +259,7 @@ class TrainConfig:
     pendulum: Any = None
     critic_learning_rate: Any = 0.01
     trust_region: Any = 0.05
+    critic_lambda_horizon: Any = 1.0
     model_learning_rate: Any = 0.01
     model_beta: Any = 1.0
     model_end_softness: Any = 0.1
@@ -299,7 +310,8 @@ FIELD_GROUPS: dict[str, tuple[str, ...]] = {
                     "noise_resample_time", "hold_time"),
     "estimator": ("discount", "use_baseline"),
     "optimiser": ("optimizer", "learning_rate", "max_grad_norm"),
-    "critic": ("critic_steps", "critic_optimism", "critic_learning_rate", "trust_region"),
+    "critic": ("critic_steps", "critic_optimism", "critic_targets", "critic_learning_rate",
+               "trust_region", "critic_lambda_horizon"),
     "model": ("model_capacity", "model_inducing", "model_fit_subset", "model_fit_steps",
               "model_particles", "model_steps", "model_horizon", "model_exploration",
               "model_optimizer", "model_reward", "model_learning_rate", "model_beta",
@@ -325,8 +337,8 @@ jax.tree_util.register_dataclass(
 _POSITIVE = ("learning_rate", "max_grad_norm", "success_tolerance", "min_std", "max_std",
              "age_scale", "guided_variance_scale",
              "guided_variance_floor", "inverse_temperature", "energy_width", "candidate_scale",
-             "candidate_floor", "critic_learning_rate", "trust_region", "model_learning_rate",
-             "model_end_softness")
+             "candidate_floor", "critic_learning_rate", "trust_region", "critic_lambda_horizon",
+             "model_learning_rate", "model_end_softness")
 _NON_NEGATIVE = ("age_penalty", "novelty_tol", "model_beta")
 
 
@@ -350,11 +362,12 @@ def _check_choices_and_sizes(cfg: TrainConfig) -> None:
     for f, choices in (("controller", CONTROLLERS), ("age_fn", AGE_FUNCTIONS),
                        ("optimizer", OPTIMIZERS), ("dtype", DTYPES),
                        ("model_exploration", MODEL_EXPLORATIONS),
-                       ("model_optimizer", MODEL_OPTIMIZERS), ("model_reward", MODEL_REWARDS)):
+                       ("model_optimizer", MODEL_OPTIMIZERS), ("model_reward", MODEL_REWARDS),
+                       ("critic_targets", CRITIC_TARGETS)):
         if getattr(cfg, f) not in choices:
             what = {"age_fn": "age function", "model_exploration": "model exploration",
                     "model_optimizer": "model optimiser",
-                    "model_reward": "model reward"}.get(f, f)
+                    "model_reward": "model reward", "critic_targets": "critic targets"}.get(f, f)
             _fail(f, f"unknown {what} {getattr(cfg, f)!r}; choose from {choices}")
     for f in ("num_updates", "episodes_per_update", "episode_length", "gp_capacity",
               "hyperfit_samples", "hyperfit_steps", "hyperfit_subset", "num_candidates", "gp_stride",
@@ -419,7 +432,8 @@ def _check_traced(cfg: TrainConfig) -> None:
         if isinstance(v, jax.core.Tracer):
             continue
         arr = np.asarray(v, dtype=float)
-        finite = np.isfinite(arr) | ((f == "max_grad_norm") & (arr == np.inf))
+        finite = np.isfinite(arr) | ((f in ("max_grad_norm", "critic_lambda_horizon"))
+                                     & (arr == np.inf))
         if not np.all(finite):
             _fail(f, f"must be finite, got {v!r}")
         if f in _POSITIVE and np.any(arr <= 0):

@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from gpguided_jax import kernels, methods, policy_gradient, sparse_gp
+from gpguided_jax import config, kernels, methods, policy_gradient, sparse_gp
 
 LINE_SEARCH_HALVINGS = 10
 RECORDS = policy_gradient.RECORDS + ("critic_gain", "critic_kl", "critic_step_fraction",
@@ -230,6 +230,60 @@ def unseen_error(prog, gp, kernel, eps, returns):
     return jnp.sum(w * (returns - mu) ** 2) / jnp.maximum(spread, jnp.finfo(returns.dtype).tiny)
 
 
+def lambda_returns(rewards, q_next, cut, discount, lam):
+    """lambda-returns of one episode, bootstrapped with the critic's values:
+
+      G_t = r_t + gamma (1 - cut_t) [(1 - lambda) q_t + lambda G_{t+1}],   G_H = q_{H-1},
+
+    with q_t the critic's value of the step after t and cut_t whether the transition at t ends
+    the episode (nothing is bootstrapped past an end). lambda = 1 gives the returns-to-go with
+    the critic's value where the episode is cut at its length; lambda = 0 the one-step targets
+    r_t + gamma q_t.
+
+    Args:
+      rewards, q_next: (H,).
+      cut: (H,) bool.
+      discount, lam: () gamma and lambda.
+    """
+    dtype = rewards.dtype
+    discount, lam = jnp.asarray(discount, dtype), jnp.asarray(lam, dtype)
+
+    def backward(g_next, x):
+        r, q, c = x
+        g = r + discount * (1.0 - c) * ((1.0 - lam) * q + lam * g_next)
+        return g, g
+
+    _, g = jax.lax.scan(backward, q_next[-1], (rewards, q_next, cut.astype(dtype)), reverse=True)
+    return g
+
+
+def bootstrapped_targets(prog, cfg, state, ep, returns):
+    """gp_critic's GP targets for one episode (`Method.targets`): its returns-to-go, or with
+    `critic_targets='lambda'` its `lambda_returns` with the critic's value Q_GP(s_{t+1}, a_{t+1})
+    of the GP the update started from (at the episode's last step, where it is cut at its length,
+    the action is the controller's c(s_H)), lambda = exp(-dt / `critic_lambda_horizon`). An
+    episode ends (no bootstrap) where it stops being alive, where it restarts, or at the last
+    step where the task's stated end (`Task.end_fn`) holds."""
+    if prog.config.critic_targets == "returns":
+        return returns
+    task, dtype = prog.task, returns.dtype
+    last = prog.controller.apply(state.theta.controller, ep.next_states[-1])
+    actions = jnp.concatenate([ep.actions[1:], jnp.reshape(last, (1,)).astype(ep.actions.dtype)])
+    x = jax.vmap(task.features)(ep.next_states, actions)
+    q = jax.vmap(lambda xi: sparse_gp.predict(state.gp, xi, state.kernel)[0])(x).astype(dtype)
+    if ep.ends is not None:
+        cut = ep.ends
+    elif ep.alive is not None:
+        ends_last = (jnp.asarray(task.end_fn(ep.next_states[-1]), bool) if task.end_fn is not None
+                     else jnp.zeros((), bool))
+        cut = ep.alive & ~jnp.concatenate([ep.alive[1:], (~ends_last)[None]])
+    else:
+        cut = jnp.zeros(returns.shape, bool)
+    lam = jnp.exp(-config.control_interval(prog.config) / jnp.asarray(cfg.critic_lambda_horizon,
+                                                                       dtype))
+    return lambda_returns(ep.rewards, q, cut, cfg.discount, lam)
+
+
 def critic_update(prog, cfg, state, batch):
     """gp_pg's step (eq. 9), then `critic_steps` surrogate steps in the trust region. Its records
     add the surrogate's gain, the mean KL, the fraction of the move taken, the critic's error on
@@ -259,5 +313,6 @@ methods.register(methods.Method(
     name="gp_critic", policy="fixed_noise", prior="q_gp", init=policy_gradient.no_state,
     update=critic_update, records=RECORDS, explorations=("white", "ou", "coloured"),
     compare_with=("reinforce", "gp_pg"), fit_fields=methods.Q_GP_FIT_FIELDS,
+    targets=bootstrapped_targets,
     explain_exploration="'parameter' noise makes the action's distribution depend on the state "
                         "through the weights, which the closed-form surrogate does not take"))

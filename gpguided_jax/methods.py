@@ -74,6 +74,9 @@ class Method(NamedTuple):
       fit_fields: the config fields its prior's fit reads (empty without a prior).
       explain_exploration: why a scheme outside `explorations` is refused (for the error).
       paper: one of the paper's methods (Fig. 5; `paper()`).
+      targets: `targets(prog, cfg, state, ep, returns) -> (H,)`, the targets its GP takes in for
+        one episode (state: the update's `TrainState`, ep: the episode, returns: its
+        returns-to-go); None: the returns-to-go (the paper's).
       eval_held: its evaluation episodes decide every `hold_time`, as its learning episodes do (a
         controller optimised for held actions, gp_model's); False: at every control step.
     """
@@ -91,6 +94,7 @@ class Method(NamedTuple):
     explain_exploration: str = ""
     paper: bool = False
     eval_held: bool = False
+    targets: Callable[..., Any] | None = None
 
     @property
     def uses_gp(self) -> bool:
@@ -188,4 +192,5 @@ def fit_inputs(cfg) -> dict | None:
 def shares_program(a: Method, b: Method) -> bool:
     """Whether two methods can be branches of one compiled program (`train.make_methods_train`):
     the same prior, initial state and improvement step; only their policies differ."""
-    return a.prior == b.prior and a.init is b.init and a.update is b.update
+    return (a.prior == b.prior and a.init is b.init and a.update is b.update
+            and a.targets is b.targets)

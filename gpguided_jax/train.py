@@ -212,6 +212,8 @@ def _take_in(prog: Program, cfg: TrainConfig, state: TrainState, gp, ep: Episode
         # step; with a hold longer than the stride, every decision)
         k = gp_spacing(static.gp_stride, prog.hold)
         valid = None if ep.alive is None else ep.alive[::k]
+        if prog.method.targets is not None:  # the method's own targets (`Method.targets`)
+            returns = prog.method.targets(prog, cfg, state, ep, returns)
         gp, fired, health = take_in_episode(
             gp, state.kernel, features(prog, ep.states, ep.actions)[::k], returns[::k],
             state.update_index, cfg, valid)

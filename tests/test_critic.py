@@ -351,3 +351,90 @@ def test_on_a_bandit_it_reaches_the_optimum_in_fewer_updates_than_gp_pg(critic_r
         first[method] = np.where(close.any(axis=1), close.argmax(axis=1), cfg.num_updates)
     assert np.all(first[critic_registered] < cfg.num_updates), first
     assert np.all(first[critic_registered] < first["gp_pg"]), first
+
+
+# ------------------------------------------------------------------------------------------------
+# Bootstrapped targets: lambda-returns with the GP's own mean.
+# ------------------------------------------------------------------------------------------------
+
+
+def _forward_lambda_returns(r, q, gamma, lam):
+    """The lambda-return's forward view, float64 NumPy, for an episode cut at its length H: the
+    n-step returns G_t^(n) = sum_{k<n} gamma^k r_{t+k} + gamma^n q_{t+n-1}, weighed (1 - lambda)
+    lambda^(n-1) for n < H - t and lambda^(H-t-1) for the longest, whose bootstrap is q_{H-1}."""
+    h = len(r)
+    out = np.zeros(h)
+    def n_step(t, n):
+        return sum(gamma ** k * r[t + k] for k in range(n)) + gamma ** n * q[t + n - 1]
+
+    for t in range(h):
+        longest = h - t
+        out[t] = (sum((1 - lam) * lam ** (n - 1) * n_step(t, n) for n in range(1, longest))
+                  + lam ** (longest - 1) * n_step(t, longest))
+    return out
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+@pytest.mark.parametrize("lam", [0.0, 0.6, 1.0])
+def test_lambda_returns_against_their_forward_view(dtype, lam):
+    """The backward recursion against the forward view's weighted n-step returns; with a cut
+    (an episode's end) at step 5, the steps up to it are an episode that ends there (nothing
+    bootstrapped: its last value 0) and those after it one of their own."""
+    rng = np.random.default_rng(int(lam * 10))
+    h, gamma = 12, 0.9
+    r, q = rng.normal(size=h), rng.normal(size=h)
+    f = jax.jit(critic.lambda_returns)
+    got = f(jnp.asarray(r, dtype), jnp.asarray(q, dtype), jnp.zeros(h, bool), gamma, lam)
+    np.testing.assert_allclose(np.asarray(got), _forward_lambda_returns(r, q, gamma, lam),
+                               **TOL[dtype])
+    cut = np.zeros(h, bool)
+    cut[5] = True
+    got = np.asarray(f(jnp.asarray(r, dtype), jnp.asarray(q, dtype), jnp.asarray(cut), gamma, lam))
+    q_ended = q[:6].copy()
+    q_ended[-1] = 0.0
+    np.testing.assert_allclose(got[:6], _forward_lambda_returns(r[:6], q_ended, gamma, lam),
+                               **TOL[dtype])
+    np.testing.assert_allclose(got[6:], _forward_lambda_returns(r[6:], q[6:], gamma, lam),
+                               **TOL[dtype])
+
+
+def test_lambda_targets_bootstrap_with_the_gp_the_update_started_from():
+    """`critic_targets='lambda'`: the values are mu_Q of the update's starting GP (NumPy, from
+    its definition) at each next state with the next action, the controller's action where the
+    episode is cut at its length; lambda = exp(-dt / horizon). 'returns' leaves the returns-to-go
+    as they are, and the GP the update ends with differs between the two."""
+    cfg = C.preset("tiny", method="gp_critic", critic_targets="lambda", critic_lambda_horizon=0.02)
+    prog = T.make_program(cfg)
+    gp, rng = _random_gp(11, jnp.float64, slots=9, dim=4)
+    kernel = _kernel(jnp.float64, 1.0, dim=4)
+    prior = T.GPPrior(kernel, jnp.asarray(-1.5))
+    state = T.initial_state(prog, jax.random.PRNGKey(4), cfg, prior)
+    weights = jnp.asarray(rng.normal(size=state.theta.controller.weights.shape) * 0.3)
+    state = state._replace(gp=gp, theta=state.theta._replace(
+        controller=state.theta.controller._replace(weights=weights)))
+    h = cfg.episode_length
+    ep = T.Episode(states=None, next_states=jnp.asarray(rng.normal(size=(h, 2))),
+                   actions=jnp.asarray(rng.normal(size=h)), rewards=jnp.asarray(rng.normal(size=h)),
+                   scores=None, exploration_std=None, alive=None)
+    returns = jnp.asarray(rng.normal(size=h))
+    got = np.asarray(critic.bootstrapped_targets(prog, cfg, state, ep, returns))
+    last = float(prog.controller.apply(state.theta.controller, ep.next_states[-1]))
+    actions = np.r_[np.asarray(ep.actions)[1:], last]
+    x = np.asarray(jax.vmap(prog.task.features)(ep.next_states, jnp.asarray(actions)))
+    q = _numpy_mean(gp, kernel, x)
+    lam = np.exp(-C.control_interval(cfg) / 0.02)
+    expected = _forward_lambda_returns(np.asarray(ep.rewards), q, float(cfg.discount), lam)
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-10)
+    as_paper = cfg.replace(critic_targets="returns")
+    np.testing.assert_array_equal(
+        np.asarray(critic.bootstrapped_targets(T.make_program(as_paper), as_paper, state, ep,
+                                               returns)), np.asarray(returns))
+
+    @jax.jit
+    def take_in(state):
+        keys = jax.random.split(jax.random.PRNGKey(5), cfg.episodes_per_update)
+        return [T.roll_out_and_take_in(T.make_program(c), c, state, keys)[0].alpha
+                for c in (cfg, as_paper)]
+
+    bootstrapped, paper = take_in(state)
+    assert not np.allclose(np.asarray(bootstrapped), np.asarray(paper))
