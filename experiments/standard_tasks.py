@@ -21,6 +21,9 @@ docs/results/standard/<task>):
             (the run), heldout/<name>.npz (return curves against environment steps,
             `study.env_steps`) and .json. It resumes: a name whose .json holds the same seeds and
             settings is not run again.
+``targets`` gp_critic's GP targets on the tuning seeds (`TARGET_GRIDS`; Pendulum-v1 and the car):
+            returns-to-go against lambda-returns. Writes targets.json; `heldout --only
+            gp_critic_lambda` runs the better lambda-return on the held-out seeds.
 ``report``  tuning.json (the tuning records gathered), the figure (return of the deterministic
             policy against environment steps, mean and 95% t-band over seeds, the threshold
             dashed) and heldout_table.json, from which `docs_tables.py` renders the tables.
@@ -29,6 +32,8 @@ Usage:
   python experiments/standard_tasks.py tune --task pendulum-v1
   python experiments/standard_tasks.py heldout --task pendulum-v1
   python experiments/standard_tasks.py report --task pendulum-v1
+  python experiments/standard_tasks.py targets --task pendulum-v1
+  python experiments/standard_tasks.py heldout --task pendulum-v1 --only gp_critic_lambda
 """
 
 from __future__ import annotations
@@ -56,6 +61,13 @@ BASELINES = ("ppo", "sac")
 # `episode_end='restart'` (an episode that ends is restarted in its remaining slots, so every slot
 # is an environment step, as for PPO and SAC): `heldout --only reinforce_restart ...`.
 RESTARTED = tuple(f"{m}_restart" for m in METHODS)
+# gp_critic's GP targets (`targets` stage): at its tuned settings, the paper's returns-to-go
+# against lambda-returns bootstrapped with the GP's mean, lambda a horizon of a quarter and of the
+# whole of the task's discount horizon (s; the car's step counts as 1 s). The best on the tuning
+# seeds is chosen; `heldout --only gp_critic_lambda` runs the better lambda-return on the held-out
+# seeds whichever is chosen, so that the critic's error is reported under both.
+TARGET_GRIDS = {"pendulum-v1": [0.25, 1.0], "mountaincar-continuous": [25.0, 100.0]}
+BOOTSTRAPPED = ("gp_critic_lambda",)
 CONFIGS_PER_METHOD = 8
 TUNING_SEEDS = study.TUNING_SEEDS
 HELDOUT_SEEDS = study.HELDOUT_SEEDS
@@ -217,6 +229,8 @@ def heldout(task: str, out: str, seeds, only: list[str], part: str | None = None
         method, end = _method_and_end(name)
         settings = study.read_json(os.path.join(out, "tuning", f"{method}.json"),
                                    {}).get("chosen", {})
+        if name in BOOTSTRAPPED:  # the better lambda-return of the `targets` stage
+            settings = {**settings, **study.read_json(os.path.join(out, "targets.json"))["best"]}
         meta = {"seeds": list(seeds), "settings": settings}
         if method in METHODS:
             meta["episode_end"] = end
@@ -271,10 +285,36 @@ def _join_parts(out: str, name: str) -> None:
 
 
 def _method_and_end(name: str) -> tuple[str, str]:
-    """(method, episode_end) of a name of METHODS, RESTARTED or BASELINES."""
+    """(method, episode_end) of a name of METHODS, RESTARTED, BOOTSTRAPPED or BASELINES."""
     if name.endswith("_restart"):
         return name[: -len("_restart")], "restart"
+    if name in BOOTSTRAPPED:
+        return "gp_critic", "mask"
     return name, "mask"
+
+
+def targets(task: str, out: str) -> None:
+    """gp_critic at its tuned settings (tuning/gp_critic.json) with each GP target of
+    `TARGET_GRIDS` on the tuning seeds, one stage: returns-to-go, and lambda-returns at each
+    horizon. Writes targets.json: what was tried, the choice, and the best lambda-return."""
+    tuned = study.read_json(os.path.join(out, "tuning", "gp_critic.json"))["chosen"]
+    stages = [[{**tuned, "critic_targets": "returns"}],  # one program, then one for the horizons
+              [{**tuned, "critic_targets": "lambda", "critic_lambda_horizon": h}
+               for h in TARGET_GRIDS[task]]]
+    tried = []
+    for configs in stages:
+        results = study.sweep_stage([method_overrides(task, "gp_critic", c) for c in configs],
+                                    study.final_return, method="gp_critic", preset=task,
+                                    seeds=TUNING_SEEDS)
+        tried += [dict(settings=c, **r) for c, r in zip(configs, results)]
+    for t in tried:
+        study.log(f"[targets {task}] {t['settings']}: {t['score']:.1f}")
+    best = max((t for t in tried if t["settings"]["critic_targets"] == "lambda"),
+               key=study.by_score)
+    study.write_json(os.path.join(out, "targets.json"), {
+        "task": task, "seeds": list(TUNING_SEEDS), "grid": TARGET_GRIDS[task], "tried": tried,
+        "chosen": max(tried, key=study.by_score)["settings"],
+        "best": {k: best["settings"][k] for k in ("critic_targets", "critic_lambda_horizon")}})
 
 
 def steps_used(run_dir: str, cfg) -> np.ndarray:
@@ -297,7 +337,7 @@ def steps_used(run_dir: str, cfg) -> np.ndarray:
 def report(task: str, out: str) -> None:
     gather_tuning(task, out)
     curves, meta = {}, {"wall_s": {}}
-    for n in (*METHODS, *RESTARTED, *BASELINES):
+    for n in (*METHODS, *RESTARTED, *BOOTSTRAPPED, *BASELINES):
         _join_parts(out, n)
         path = os.path.join(out, "heldout", f"{n}.npz")
         if os.path.exists(path):
@@ -309,7 +349,8 @@ def report(task: str, out: str) -> None:
             meta["wall_s"][n], meta["seeds"] = m["wall_s"], m["seeds"]
     threshold = tasks.THRESHOLDS[config_lib.PRESETS[task]["env"]]
     terminates = tasks.make_task(config_lib.PRESETS[task]["env"]).terminates
-    names = [n for n in (*METHODS, *RESTARTED, *BASELINES) if f"{n}_return" in curves]
+    names = [n for n in (*METHODS, *RESTARTED, *BOOTSTRAPPED, *BASELINES)
+             if f"{n}_return" in curves]
     rows = []
     fig, ax = plt.subplots(figsize=(7, 4))
     for n in names:
@@ -347,25 +388,28 @@ def report(task: str, out: str) -> None:
         "budget": budget(task), "fit_steps": fit_steps, "reference": REFERENCES.get(task)})
     study.log(f"wrote {figure} and {out}/heldout_table.json")
     study.critic_diagnostics({n: os.path.join(out, "methods", n, "results.npz")
-                              for n in (*METHODS, *RESTARTED) if n in names},
+                              for n in (*METHODS, *RESTARTED, *BOOTSTRAPPED) if n in names},
                              os.path.join(out, "critic_diagnostics.json"))
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("stage", choices=["tune", "heldout", "report"])
+    p.add_argument("stage", choices=["tune", "targets", "heldout", "report"])
     p.add_argument("--task", required=True, choices=[t for t in config_lib.PRESETS
                                                      if "env" in config_lib.PRESETS[t]])
     p.add_argument("--out", default=None, help="default docs/results/standard/<task>")
     p.add_argument("--part", default=None, metavar="K/N",
                    help="heldout: a baseline's seeds K, K + N, ... only (N processes at once)")
     p.add_argument("--only", nargs="+", default=[*METHODS, *BASELINES],
-                   choices=[*METHODS, *RESTARTED, *BASELINES],
+                   choices=[*METHODS, *RESTARTED, *BOOTSTRAPPED, *BASELINES],
                    help="tune, heldout: these methods and baselines (heldout: also "
-                   "<method>_restart, the method with episode_end='restart')")
+                   "<method>_restart, the method with episode_end='restart', and "
+                   "gp_critic_lambda, gp_critic with the targets stage's lambda-returns)")
     args = p.parse_args(argv)
-    if args.stage == "tune" and set(args.only) & set(RESTARTED):
+    if args.stage == "tune" and set(args.only) & {*RESTARTED, *BOOTSTRAPPED}:
         p.error("tune: the restarted methods take the settings tuned for their method")
+    if args.stage == "targets" and args.task not in TARGET_GRIDS:
+        p.error(f"targets: the grid covers {', '.join(TARGET_GRIDS)}")
     runtime.single_threaded_lapack()
     runtime.set_compile_cache(runtime.DEFAULT_COMPILE_CACHE)
     gpguided_jax.enable_x64()
@@ -373,6 +417,8 @@ def main(argv=None) -> int:
     os.makedirs(out, exist_ok=True)
     if args.stage == "tune":
         tune(args.task, out, args.only)
+    elif args.stage == "targets":
+        targets(args.task, out)
     elif args.stage == "heldout":
         heldout(args.task, out, HELDOUT_SEEDS, args.only, args.part)
     else:
