@@ -384,6 +384,25 @@ def standard_critic_table(task: str) -> str:
     return critic_table(os.path.join("standard", task, "critic_diagnostics.json"))
 
 
+def standard_targets_table(task: str) -> str:
+    """`experiments/standard_tasks.py targets`: gp_critic's GP targets on the tuning seeds."""
+    path = os.path.join("standard", task, "targets.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        d = json.load(f)
+    lines = ["| targets | λ horizon [s] | score (tuning seeds) | chosen |", "|---|---|---|---|"]
+    for t in d["tried"]:
+        s = t["settings"]
+        horizon = f"{s['critic_lambda_horizon']:g}" if s["critic_targets"] == "lambda" else "–"
+        name = "returns-to-go" if s["critic_targets"] == "returns" else "λ-returns"
+        lines.append(f"| {name} | {horizon} | {t['score']:.1f} | "
+                     f"{'yes' if s == d['chosen'] else ''} |")
+    lines.append("")
+    lines.append(f"Tuning seeds {d['seeds']}; gp_critic at its tuned settings; score: the final "
+                 "return of the deterministic policy (last 10% of evaluations, mean over seeds). "
+                 + _source(path))
+    return "\n".join(lines)
+
+
 def critic_table(path: str) -> str:
     """`study.critic_diagnostics`' file: what would limit the critic in a study's runs."""
     with open(os.path.join(RESULTS, path)) as f:
@@ -709,6 +728,8 @@ TABLES = {
     "exploration_mountaincar": lambda: exploration_standard_table("mountaincar-continuous"),
     "exploration_pendulum_v1": lambda: exploration_standard_table("pendulum-v1"),
     **{f"standard_{t.replace('-', '_')}": (lambda t=t: standard_table(t)) for t in STANDARD_TASKS},
+    **{f"standard_targets_{t.replace('-', '_')}": (lambda t=t: standard_targets_table(t))
+       for t in ("pendulum-v1", "mountaincar-continuous")},
     "exploration_critic": lambda: critic_table(os.path.join("exploration",
                                                             "critic_diagnostics.json")),
     **{f"standard_critic_{t.replace('-', '_')}": (lambda t=t: standard_critic_table(t))
