@@ -563,11 +563,16 @@ def standard(task: str, out: str, only=None) -> dict:
              for m in only or METHODS for name in _schemes_of(m, STANDARD_SCHEMES[task])}
     meta = study.run_parts(path, {"task": task, "seeds": list(STANDARD_SEEDS)}, parts, run,
                            log=lambda m: log(f"[standard {task}] {m}"))
-    # the guidance against the same unguided noise: P(guided_variance > gp_pg), final return
+    # the guidance against the same unguided noise: P(guided_variance > gp_pg), final return (the
+    # run directories' curves are not kept in the repository: a scheme whose two runs' curves are
+    # not on this machine keeps its earlier entry)
     finals = {}
     for key in meta["runs"]:
-        with np.load(os.path.join(base, key, "results.npz")) as f:
-            finals[key] = study.final(f["eval_return"][0])
+        results = os.path.join(base, key, "results.npz")
+        if os.path.exists(results):
+            with np.load(results) as f:
+                finals[key] = study.final(f["eval_return"][0])
+    earlier = {g["scheme"]: g for g in meta.get("guidance", [])}
     meta["guidance"] = []
     for name in STANDARD_SCHEMES[task]:
         a, b = f"guided_variance/{name}", f"gp_pg/{name}"
@@ -576,6 +581,8 @@ def standard(task: str, out: str, only=None) -> dict:
             meta["guidance"].append(dict(
                 scheme=name, p=stats_lib.probability_of_improvement(finals[a], finals[b]),
                 ci=[lo, hi]))
+        elif name in earlier:
+            meta["guidance"].append(earlier[name])
     study.write_json(path, meta)
     return meta
 
