@@ -612,6 +612,8 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
                             "hold_time": 0.5},
         "guided_direction": {"learning_rate": 0.03, "use_baseline": True, "candidate_scale": 16.0,
                              "discount_horizon": 0.5, "hold_time": 0.2},
+        "gp_critic": {"learning_rate": 0.03, "use_baseline": True, "init_log_std": math.log(4.0),
+                      "discount_horizon": 0.5, "hold_time": 0.5, "critic_learning_rate": 0.01},
         # experiments/model_study.py (docs/model_based.md): 10 episodes, decisions held 0.1 s
         "gp_model": {"episodes_per_update": 1, "hold_time": 0.1, "init_log_std": math.log(2.0),
                      "min_std": 0.05, "eval_episodes": 10, "model_horizon": 6.0,

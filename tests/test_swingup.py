@@ -88,7 +88,8 @@ def test_swingup_preset_uses_the_tuned_settings():
     spec.loader.exec_module(study)
     with open(os.path.join(root, "docs", "results", "exploration", "tuning.json")) as f:
         tuning = json.load(f)
-    for method in config_lib.PAPER_METHODS:
+    assert set(tuning["methods"]) == {*config_lib.PAPER_METHODS, "gp_critic"}
+    for method in tuning["methods"]:
         chosen = tuning["methods"][method]["chosen"]
         cfg = config_lib.preset("swingup", method=method, dtype="float32")
         for field, value in study.settings_of(chosen, chosen["scheme"]).items():
