@@ -311,13 +311,12 @@ def test_the_stated_reward_of_a_task_that_states_none_is_refused_in_one_line():
     assert not MB.learns_reward(tasks.make_task("pendulum"), C.make_config(method="gp_model"))
 
 
-@pytest.mark.parametrize("dtype", ["float64", "float32"])
-def test_a_learned_reward_predicts_the_stated_one_on_transitions_it_has_not_seen(dtype):
+def test_a_learned_reward_predicts_the_stated_one_on_transitions_it_has_not_seen(dtype="float64"):
     """Pendulum-v1, its reward learnt as the model's last output from 400 of 600 random-action
     transitions: on the 200 others, the learnt reward's mean is the task's stated reward (itself
     the environment's: `test_the_stated_reward_and_end_are_the_environments`) within 5% of the
     reward's spread (root mean square), and within 3 of the GP's predictive standard deviations
-    at nearly all."""
+    at nearly all. (float32's model of such nearly noiseless data: the test below.)"""
     task = tasks.make_task("gymnax:Pendulum-v1")
     cfg = C.make_config(env="gymnax:Pendulum-v1", method="gp_model", dtype=dtype,
                         model_reward="learned", model_inducing=150)
@@ -448,7 +447,7 @@ def test_the_controller_optimised_through_a_learned_model_approaches_the_lqr_gai
                             episode_length=30, num_updates=1, episodes_per_update=2,
                             init_log_std=float(np.log(3.0)), model_particles=32, model_steps=30,
                             model_horizon=30.0, model_inducing=60, model_optimizer="lbfgs",
-                            model_fit_steps=200)
+                            model_fit_steps=50 if reward == "stated" else 200)
         train = T.make_train(cfg)
         state, rec = jax.jit(train)(jax.random.key(8))
         expected_error = 0.0 if reward == "stated" else 1.0
