@@ -153,7 +153,7 @@ class TrainConfig:
         sigma_Q^2)^(1/2), sigma_Q the GP's latent standard deviation (> 0 optimistic, < 0
         pessimistic; 0, the default: the mean alone). The other methods ignore it.
       critic_targets: gp_critic's GP targets: 'returns' (default; the paper's returns-to-go) or
-        'lambda' (lambda-returns bootstrapped with the GP's own mean, `critic.lambda_returns`).
+        'lambda' (lambda-returns bootstrapped with the GP's own mean, `critic.bootstrapped_targets`).
       model_capacity, model_inducing, model_fit_subset, model_fit_steps, model_particles,
         model_steps, model_horizon, model_exploration, model_optimizer: gp_model's transitions
         kept, inducing inputs, the refit's subset and Adam steps, simulated particles, optimiser

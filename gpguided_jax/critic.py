@@ -28,6 +28,10 @@ sigma_Q^2)^(1/2) (kappa > 0 optimistic, < 0 pessimistic): the GP's latent varian
 (Csato-Opper's C) averaged over the action in closed form as well (`expected_variance`), its
 gradient by autodiff.
 
+Its GP takes in the paper's returns-to-go, or with `critic_targets='lambda'` lambda-returns
+bootstrapped with the mean of the GP the update started from (`bootstrapped_targets`, declared as
+the method's `targets`).
+
 The exploration it accepts is every scheme whose marginal action at a decision point is
 N(c(s), sigma^2): white, Ornstein-Uhlenbeck and coloured noise, with or without held actions
 (the surrogate then runs over the decision states, the GP's own inputs).
@@ -39,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from gpguided_jax import config, kernels, methods, policy_gradient, sparse_gp
+from gpguided_jax import config, estimators, kernels, methods, policy_gradient, sparse_gp
 
 LINE_SEARCH_HALVINGS = 10
 RECORDS = policy_gradient.RECORDS + ("critic_gain", "critic_kl", "critic_step_fraction",
@@ -230,36 +234,9 @@ def unseen_error(prog, gp, kernel, eps, returns):
     return jnp.sum(w * (returns - mu) ** 2) / jnp.maximum(spread, jnp.finfo(returns.dtype).tiny)
 
 
-def lambda_returns(rewards, q_next, cut, discount, lam):
-    """lambda-returns of one episode, bootstrapped with the critic's values:
-
-      G_t = r_t + gamma (1 - cut_t) [(1 - lambda) q_t + lambda G_{t+1}],   G_H = q_{H-1},
-
-    with q_t the critic's value of the step after t and cut_t whether the transition at t ends
-    the episode (nothing is bootstrapped past an end). lambda = 1 gives the returns-to-go with
-    the critic's value where the episode is cut at its length; lambda = 0 the one-step targets
-    r_t + gamma q_t.
-
-    Args:
-      rewards, q_next: (H,).
-      cut: (H,) bool.
-      discount, lam: () gamma and lambda.
-    """
-    dtype = rewards.dtype
-    discount, lam = jnp.asarray(discount, dtype), jnp.asarray(lam, dtype)
-
-    def backward(g_next, x):
-        r, q, c = x
-        g = r + discount * (1.0 - c) * ((1.0 - lam) * q + lam * g_next)
-        return g, g
-
-    _, g = jax.lax.scan(backward, q_next[-1], (rewards, q_next, cut.astype(dtype)), reverse=True)
-    return g
-
-
 def bootstrapped_targets(prog, cfg, state, ep, returns):
     """gp_critic's GP targets for one episode (`Method.targets`): its returns-to-go, or with
-    `critic_targets='lambda'` its `lambda_returns` with the critic's value Q_GP(s_{t+1}, a_{t+1})
+    `critic_targets='lambda'` its `estimators.lambda_returns` with the critic's value Q_GP(s_{t+1}, a_{t+1})
     of the GP the update started from (at the episode's last step, where it is cut at its length,
     the action is the controller's c(s_H)), lambda = exp(-dt / `critic_lambda_horizon`). An
     episode ends (no bootstrap) where it stops being alive, where it restarts, or at the last
@@ -281,7 +258,7 @@ def bootstrapped_targets(prog, cfg, state, ep, returns):
         cut = jnp.zeros(returns.shape, bool)
     lam = jnp.exp(-config.control_interval(prog.config) / jnp.asarray(cfg.critic_lambda_horizon,
                                                                        dtype))
-    return lambda_returns(ep.rewards, q, cut, cfg.discount, lam)
+    return estimators.lambda_returns(ep.rewards, q, cut, cfg.discount, lam)
 
 
 def critic_update(prog, cfg, state, batch):

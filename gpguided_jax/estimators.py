@@ -10,6 +10,8 @@ in_axes=(None, 0, 0, None, 0))(theta, s, a, ctx, aux)`.
   GP PG (eq. 9):       grad J = (1/N) sum_n sum_t score_{n,t} (Q_GP(s_{n,t}, a_{n,t}) - b_{n,t})
 
 with N the number of episodes and the baseline b = 0 unless one is given (the paper has none).
+The returns are the returns-to-go (`discounted_returns`), or, for gp_critic's GP, lambda-returns
+bootstrapped with a critic's values (`lambda_returns`).
 """
 
 from typing import Any
@@ -127,3 +129,30 @@ def ascent_step(
     negated = jax.tree_util.tree_map(jnp.negative, gradient)
     updates, opt_state = optimizer.update(negated, opt_state, params)
     return optax.apply_updates(params, updates), opt_state
+
+
+def lambda_returns(rewards, q_next, cut, discount, lam):
+    """lambda-returns of one episode, bootstrapped with a critic's values (gp_critic's targets):
+
+      G_t = r_t + gamma (1 - cut_t) [(1 - lambda) q_t + lambda G_{t+1}],   G_H = q_{H-1},
+
+    with q_t the critic's value of the step after t and cut_t whether the transition at t ends
+    the episode (nothing is bootstrapped past an end). lambda = 1 gives the returns-to-go with
+    the critic's value where the episode is cut at its length; lambda = 0 the one-step targets
+    r_t + gamma q_t.
+
+    Args:
+      rewards, q_next: (H,).
+      cut: (H,) bool.
+      discount, lam: () gamma and lambda.
+    """
+    dtype = rewards.dtype
+    discount, lam = jnp.asarray(discount, dtype), jnp.asarray(lam, dtype)
+
+    def backward(g_next, x):
+        r, q, c = x
+        g = r + discount * (1.0 - c) * ((1.0 - lam) * q + lam * g_next)
+        return g, g
+
+    _, g = jax.lax.scan(backward, q_next[-1], (rewards, q_next, cut.astype(dtype)), reverse=True)
+    return g

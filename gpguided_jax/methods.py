@@ -191,6 +191,6 @@ def fit_inputs(cfg) -> dict | None:
 
 def shares_program(a: Method, b: Method) -> bool:
     """Whether two methods can be branches of one compiled program (`train.make_methods_train`):
-    the same prior, initial state and improvement step; only their policies differ."""
+    the same prior, initial state, improvement step and GP targets; only their policies differ."""
     return (a.prior == b.prior and a.init is b.init and a.update is b.update
             and a.targets is b.targets)

@@ -9,7 +9,7 @@ import pytest
 from scipy import integrate
 
 from gpguided_jax import config as C
-from gpguided_jax import critic, kernels, policy_gradient, sparse_gp, tasks
+from gpguided_jax import critic, estimators, kernels, policy_gradient, sparse_gp, tasks
 from gpguided_jax import train as T
 
 TOL = {jnp.float32: dict(rtol=2e-4, atol=2e-5), jnp.float64: dict(rtol=1e-9, atol=1e-11)}
@@ -383,7 +383,7 @@ def test_lambda_returns_against_their_forward_view(dtype, lam):
     rng = np.random.default_rng(int(lam * 10))
     h, gamma = 12, 0.9
     r, q = rng.normal(size=h), rng.normal(size=h)
-    f = jax.jit(critic.lambda_returns)
+    f = jax.jit(estimators.lambda_returns)
     got = f(jnp.asarray(r, dtype), jnp.asarray(q, dtype), jnp.zeros(h, bool), gamma, lam)
     np.testing.assert_allclose(np.asarray(got), _forward_lambda_returns(r, q, gamma, lam),
                                **TOL[dtype])
