@@ -1,6 +1,6 @@
-"""Exploration that can find a swing-up: the four methods on the swing-up preset with temporally
-correlated noise and held actions (design: docs/design.md#exploration), by the protocol of
-`gpguided_jax.study`.
+"""Exploration that can find a swing-up: the four methods and gp_critic on the swing-up preset with
+temporally correlated noise and held actions (design: docs/design.md#exploration), by the protocol
+of `gpguided_jax.study`.
 
 The grid below was written down before any of its runs. Each method's settings apply over the
 preset's tuned ones (`config.METHOD_PRESETS['swingup']`, this study's choice).
