@@ -72,7 +72,6 @@ TARGET_GRIDS = {"pendulum-v1": [0.25, 1.0], "mountaincar-continuous": [25.0, 100
 # after the tuning, not tuned): the targets stage's better lambda-return, and the GP's budget
 # M = 400 (the tuning's is the preset's 100)
 VARIANTS = {"gp_critic_lambda": "targets.json", "gp_critic_m400": {"gp_capacity": 400}}
-BOOTSTRAPPED = tuple(VARIANTS)
 CONFIGS_PER_METHOD = 8
 TUNING_SEEDS = study.TUNING_SEEDS
 HELDOUT_SEEDS = study.HELDOUT_SEEDS
@@ -293,10 +292,10 @@ def _join_parts(out: str, name: str) -> None:
 
 
 def _method_and_end(name: str) -> tuple[str, str]:
-    """(method, episode_end) of a name of METHODS, RESTARTED, BOOTSTRAPPED or BASELINES."""
+    """(method, episode_end) of a name of METHODS, RESTARTED, VARIANTS or BASELINES."""
     if name.endswith("_restart"):
         return name[: -len("_restart")], "restart"
-    if name in BOOTSTRAPPED:
+    if name in VARIANTS:
         return "gp_critic", "mask"
     return name, "mask"
 
@@ -345,7 +344,7 @@ def steps_used(run_dir: str, cfg) -> np.ndarray:
 def report(task: str, out: str) -> None:
     gather_tuning(task, out)
     curves, meta = {}, {"wall_s": {}}
-    for n in (*METHODS, *RESTARTED, *BOOTSTRAPPED, *BASELINES):
+    for n in (*METHODS, *RESTARTED, *VARIANTS, *BASELINES):
         _join_parts(out, n)
         path = os.path.join(out, "heldout", f"{n}.npz")
         if os.path.exists(path):
@@ -357,7 +356,7 @@ def report(task: str, out: str) -> None:
             meta["wall_s"][n], meta["seeds"] = m["wall_s"], m["seeds"]
     threshold = tasks.THRESHOLDS[config_lib.PRESETS[task]["env"]]
     terminates = tasks.make_task(config_lib.PRESETS[task]["env"]).terminates
-    names = [n for n in (*METHODS, *RESTARTED, *BOOTSTRAPPED, *BASELINES)
+    names = [n for n in (*METHODS, *RESTARTED, *VARIANTS, *BASELINES)
              if f"{n}_return" in curves]
     rows = []
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -396,7 +395,7 @@ def report(task: str, out: str) -> None:
         "budget": budget(task), "fit_steps": fit_steps, "reference": REFERENCES.get(task)})
     study.log(f"wrote {figure} and {out}/heldout_table.json")
     study.critic_diagnostics({n: os.path.join(out, "methods", n, "results.npz")
-                              for n in (*METHODS, *RESTARTED, *BOOTSTRAPPED) if n in names},
+                              for n in (*METHODS, *RESTARTED, *VARIANTS) if n in names},
                              os.path.join(out, "critic_diagnostics.json"))
 
 
@@ -409,13 +408,14 @@ def main(argv=None) -> int:
     p.add_argument("--part", default=None, metavar="K/N",
                    help="heldout: a baseline's seeds K, K + N, ... only (N processes at once)")
     p.add_argument("--only", nargs="+", default=[*METHODS, *BASELINES],
-                   choices=[*METHODS, *RESTARTED, *BOOTSTRAPPED, *BASELINES],
+                   choices=[*METHODS, *RESTARTED, *VARIANTS, *BASELINES],
                    help="tune, heldout: these methods and baselines (heldout: also "
                    "<method>_restart, the method with episode_end='restart', and gp_critic's "
                    "variants: gp_critic_lambda, gp_critic_m400)")
     args = p.parse_args(argv)
-    if args.stage == "tune" and set(args.only) & {*RESTARTED, *BOOTSTRAPPED}:
-        p.error("tune: the restarted methods take the settings tuned for their method")
+    if args.stage == "tune" and set(args.only) & {*RESTARTED, *VARIANTS}:
+        p.error("tune: the restarted methods and gp_critic's variants take the settings tuned "
+                "for their method")
     if args.stage == "targets" and args.task not in TARGET_GRIDS:
         p.error(f"targets: the grid covers {', '.join(TARGET_GRIDS)}")
     runtime.single_threaded_lapack()

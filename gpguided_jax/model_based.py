@@ -556,7 +556,7 @@ def update(prog, cfg, state, batch):
     if learned:
         ys = jnp.concatenate([ys, rewards[:, None]], axis=1)
     key = jax.random.fold_in(state.key, 7)
-    k_fit, k_plan, k_err = jax.random.split(key, 3)
+    k_fit, k_plan, _ = jax.random.split(key, 3)
 
     # the model's error on this update's transitions before it takes them in (data it has not
     # seen; 1 on the first update, whose model is the prior: its prediction is 0), and the reward's
