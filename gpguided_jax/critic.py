@@ -25,8 +25,10 @@ bit for bit.
 
 With `critic_optimism` kappa != 0 the surrogate scores each state by E_a mu_Q + kappa (E_a
 sigma_Q^2)^(1/2) (kappa > 0 optimistic, < 0 pessimistic): the GP's latent variance k** + k^T C k
-(Csato-Opper's C) averaged over the action in closed form as well (`expected_variance`), its
-gradient by autodiff.
+(Csato-Opper's C) averaged over the action in closed form as well (`expected_variance`: its
+pairs' exponent splits into a part per basis vector and a part shared by every state, so each
+state costs O(M) exponentials and a matrix-vector product), its gradient hand-derived
+(`expected_variance_and_grad`).
 
 Its GP takes in the paper's returns-to-go, or with `critic_targets='lambda'` lambda-returns
 bootstrapped with the mean of the GP the update started from (`bootstrapped_targets`, declared as
@@ -83,6 +85,19 @@ def expected_q_and_grad(gp, kernel, factors, mean, std):
     return value, -jnp.sum(w * d) / v, jnp.sum(w * (d * d / v - 1.0)) * var / v
 
 
+def _variance_coupling(gp: sparse_gp.SparseGPState, kernel: kernels.KernelParams, correction, std):
+    """The state-independent parts of `expected_variance`: (r, G, H) with w = l_a^2 + 2 std^2,
+    r = (l_a^2 / w)^(1/2), G_ij = C_ij exp(-(b_i - b_j)^2 std^2 / (2 l_a^2 w)) and H = dG/dlog std
+    = -G (b_i - b_j)^2 std^2 / w^2. Every exponent is <= 0."""
+    la2 = kernel.lengthscales[-1] ** 2
+    var = std * std
+    w = la2 + 2.0 * var
+    b = gp.basis_vectors[:, -1]
+    gap2 = (b[:, None] - b[None, :]) ** 2
+    g = correction * jnp.exp(-0.5 * gap2 * var / (la2 * w))
+    return jnp.sqrt(la2 / w), g, -g * gap2 * var / (w * w)
+
+
 def expected_variance(gp: sparse_gp.SparseGPState, kernel: kernels.KernelParams, correction,
                       factors, mean, std):
     """E_{a ~ N(mean, std^2)} sigma_Q^2(s, a), the GP's latent variance k** + k^T C k averaged over
@@ -91,29 +106,47 @@ def expected_variance(gp: sparse_gp.SparseGPState, kernel: kernels.KernelParams,
 
     E_a[k_i k_j] = f_i f_j (l_a^2 / w)^(1/2) exp(-(b_i - b_j)^2 / (4 l_a^2) - (mean - (b_i + b_j) /
     2)^2 / w) with w = l_a^2 + 2 std^2, f the state factors and b the basis vectors' actions (the
-    product of two Gaussians in a, integrated against the policy's). C is negative semi-definite,
-    so the sum can round below 0 where the GP is sure: clipped at 0."""
+    product of two Gaussians in a, integrated against the policy's). Its exponent splits exactly
+    into -(mean - b_i)^2 / (2 w) - (mean - b_j)^2 / (2 w) - (b_i - b_j)^2 std^2 / (2 l_a^2 w),
+    every part <= 0, so the sum is r v^T G v with v_i = f_i exp(-(mean - b_i)^2 / (2 w)) per
+    state and G (`_variance_coupling`) shared by every state: O(M) exponentials per state and
+    one matrix-vector product, where the M x M exponentials of the pairs would be O(M^2). C is
+    negative semi-definite, so the sum can round below 0 where the GP is sure: clipped at 0."""
+    return expected_variance_and_grad(gp, kernel, correction, factors, mean, std)[0]
+
+
+def expected_variance_and_grad(gp, kernel, correction, factors, mean, std, coupling=None):
+    """`expected_variance` and its hand-derived derivatives in the mean action and in log std (0
+    where it is clipped). `coupling`: `_variance_coupling`'s (r, G, H), computed here if None.
+
+    With d_i = mean - b_i: dv_i/dmean = -v_i d_i / w, dv_i/dlog std = 2 v_i d_i^2 std^2 / w^2 and
+    dr/dlog std = -2 r std^2 / w, so d(r v^T G v) = dr v^T G v + 2 r dv^T G v + r v^T dG v."""
+    r, g, h = _variance_coupling(gp, kernel, correction, std) if coupling is None else coupling
     la2 = kernel.lengthscales[-1] ** 2
-    w = la2 + 2.0 * std * std
-    b = gp.basis_vectors[:, -1]
-    gap = b[:, None] - b[None, :]
-    mid = 0.5 * (b[:, None] + b[None, :])
-    g = jnp.sqrt(la2 / w) * jnp.exp(-0.25 * gap * gap / la2 - (mean - mid) ** 2 / w)
-    quad = jnp.sum(correction * (factors[:, None] * factors[None, :]) * g)
-    return jnp.maximum(kernel.signal_variance + quad, 0.0)
+    var = std * std
+    w = la2 + 2.0 * var
+    d = mean - gp.basis_vectors[:, -1]
+    v = factors * jnp.exp(-0.5 * d * d / w)
+    gv = g @ v
+    quad = v @ gv
+    total = kernel.signal_variance + r * quad
+    d_mean = -2.0 * r * jnp.sum(v * d * gv) / w
+    d_log = (-2.0 * var / w) * r * quad + 4.0 * r * var * jnp.sum(v * d * d * gv) / (w * w) \
+        + r * (v @ (h @ v))
+    inside = total > 0
+    zero = jnp.zeros_like(total)
+    return (jnp.where(inside, total, zero), jnp.where(inside, d_mean, zero),
+            jnp.where(inside, d_log, zero))
 
 
-def _optimism_and_grad(gp, kernel, correction, factors, mean, std, kappa):
-    """kappa (E_a sigma_Q^2)^(1/2) and its derivatives in the mean action and in log std (by
-    autodiff; 0 where the expected variance is 0)."""
-    tiny = jnp.finfo(mean.dtype).tiny
-
-    def value(m, log_std):
-        v = expected_variance(gp, kernel, correction, factors, m, jnp.exp(log_std))
-        return kappa * jnp.sqrt(jnp.maximum(v, tiny))
-
-    val, (d_mean, d_log) = jax.value_and_grad(value, argnums=(0, 1))(mean, jnp.log(std))
-    return val, d_mean, d_log
+def _optimism_and_grad(gp, kernel, correction, factors, mean, std, kappa, coupling=None):
+    """kappa (E_a sigma_Q^2)^(1/2) and its derivatives in the mean action and in log std (0 where
+    the expected variance is 0)."""
+    v, dv_mean, dv_log = expected_variance_and_grad(gp, kernel, correction, factors, mean, std,
+                                                    coupling)
+    root = jnp.sqrt(jnp.maximum(v, jnp.finfo(v.dtype).tiny))
+    scale = jnp.where(v > 0, 0.5 * kappa / root, 0.0)
+    return kappa * root, scale * dv_mean, scale * dv_log
 
 
 def gaussian_kl(mean_p, std_p, mean_q, std_q):
@@ -138,13 +171,14 @@ def surrogate_and_grad(controller, gp, kernel, theta, states, factors, weights, 
     controller's gradient. `optimism` None: the mean alone (no variance computed); else kappa,
     which may be traced."""
     std = jnp.exp(theta.log_std)
+    coupling = None if optimism is None else _variance_coupling(gp, kernel, correction, std)
 
     def one(s, f):
         c, dc = controller.value_and_grad(theta.controller, s)
         q, dq_dc, dq_dlog = expected_q_and_grad(gp, kernel, f, c, std)
         if optimism is not None:
             u, du_dc, du_dlog = _optimism_and_grad(gp, kernel, correction, f, c, std,
-                                                   jnp.asarray(optimism, c.dtype))
+                                                   jnp.asarray(optimism, c.dtype), coupling)
             q, dq_dc, dq_dlog = q + u, dq_dc + du_dc, dq_dlog + du_dlog
         return q, jax.tree_util.tree_map(lambda g: dq_dc * g, dc), dq_dlog
 

@@ -146,6 +146,44 @@ def test_the_expected_variance_against_quadrature_of_the_exact_gp(std, action_sc
                                rtol=1e-5, atol=1e-9)
 
 
+def _pairwise_expected_variance(gp, kernel, correction, factors, mean, log_std):
+    """E_a sigma_Q^2 from every pair's Gaussian integral taken as it stands (M x M exponentials;
+    the form `critic.expected_variance` splits), for autodiff."""
+    la2 = kernel.lengthscales[-1] ** 2
+    w = la2 + 2.0 * jnp.exp(2.0 * log_std)
+    b = gp.basis_vectors[:, -1]
+    gap, mid = b[:, None] - b[None, :], 0.5 * (b[:, None] + b[None, :])
+    g = jnp.sqrt(la2 / w) * jnp.exp(-0.25 * gap * gap / la2 - (mean - mid) ** 2 / w)
+    return kernel.signal_variance + jnp.sum(correction * jnp.outer(factors, factors) * g)
+
+
+@pytest.mark.parametrize("dtype, std, action_scale", [
+    (jnp.float32, 0.01, 0.05), (jnp.float32, 3.0, 5.0), (jnp.float64, *SCALES[0]),
+    (jnp.float64, *SCALES[1])])
+def test_the_expected_variance_and_its_gradient_against_the_pairwise_integral(dtype, std,
+                                                                              action_scale):
+    """The split form and its hand-derived derivatives in the mean action and log std against
+    the pairs' integral and its autodiff, at small and large std / l_a, in float32 and float64
+    (the GP built in float64, then cast)."""
+    kernel64 = _kernel(jnp.float64, action_scale)
+    xs, ys = _data_points(10)
+    gp64 = sparse_gp.exact_state(jnp.asarray(xs), jnp.asarray(ys), kernel64, capacity=12)
+    cast = lambda t: jax.tree_util.tree_map(  # noqa: E731
+        lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, t)
+    gp, kernel = cast(gp64), cast(kernel64)
+    correction = cast(sparse_gp.covariance_correction(gp64))
+    factors = critic.state_factors(gp, kernel, jnp.asarray(xs[3, :2] + 0.05, dtype))
+    mean, log_std = jnp.asarray(xs[3, 2] + 0.1, dtype), jnp.log(jnp.asarray(std, dtype))
+    got = jax.jit(critic.expected_variance_and_grad)(gp, kernel, correction, factors, mean,
+                                                     jnp.exp(log_std))
+    want = jax.value_and_grad(_pairwise_expected_variance, argnums=(4, 5))(
+        gp, kernel, correction, factors, mean, log_std)
+    assert float(want[0]) > 1e-3  # not clipped
+    tol = dict(rtol=1e-4, atol=1e-5) if dtype == jnp.float32 else dict(rtol=1e-10, atol=1e-12)
+    for g, w in zip(got, (want[0],) + want[1]):
+        np.testing.assert_allclose(float(g), float(w), **tol)
+
+
 def test_critic_optimism_is_refused_in_float32():
     with pytest.raises(ValueError, match="critic_optimism: needs dtype 'float64'"):
         C.preset("tiny", method="gp_critic", critic_optimism=1.0, dtype="float32")
