@@ -69,6 +69,7 @@ STATIC_FIELDS = (
     "critic_steps",
     "critic_optimism",
     "critic_targets",
+    "critic_window",
     "model_capacity",
     "model_inducing",
     "model_fit_subset",
@@ -154,6 +155,9 @@ class TrainConfig:
         pessimistic; 0, the default: the mean alone). The other methods ignore it.
       critic_targets: gp_critic's GP targets: 'returns' (default; the paper's returns-to-go) or
         'lambda' (lambda-returns bootstrapped with the GP's own mean, `critic.bootstrapped_targets`).
+      critic_window: gp_critic's window, in updates: the surrogate and its trust region run over
+        the decision states of the last `critic_window` updates' episodes (1, the default: the
+        update's own). The other methods ignore it.
       model_capacity, model_inducing, model_fit_subset, model_fit_steps, model_particles,
         model_steps, model_horizon, model_exploration, model_optimizer: gp_model's transitions
         kept, inducing inputs, the refit's subset and Adam steps, simulated particles, optimiser
@@ -229,6 +233,7 @@ class TrainConfig:
     critic_steps: int = 50
     critic_optimism: float = 0.0
     critic_targets: str = "returns"
+    critic_window: int = 1
     model_capacity: int = 4000
     model_inducing: int = 200
     model_fit_subset: int = 300
@@ -310,8 +315,8 @@ FIELD_GROUPS: dict[str, tuple[str, ...]] = {
                     "noise_resample_time", "hold_time"),
     "estimator": ("discount", "use_baseline"),
     "optimiser": ("optimizer", "learning_rate", "max_grad_norm"),
-    "critic": ("critic_steps", "critic_optimism", "critic_targets", "critic_learning_rate",
-               "trust_region", "critic_lambda_horizon"),
+    "critic": ("critic_steps", "critic_optimism", "critic_targets", "critic_window",
+               "critic_learning_rate", "trust_region", "critic_lambda_horizon"),
     "model": ("model_capacity", "model_inducing", "model_fit_subset", "model_fit_steps",
               "model_particles", "model_steps", "model_horizon", "model_exploration",
               "model_optimizer", "model_reward", "model_learning_rate", "model_beta",
@@ -372,7 +377,7 @@ def _check_choices_and_sizes(cfg: TrainConfig) -> None:
     for f in ("num_updates", "episodes_per_update", "episode_length", "gp_capacity",
               "hyperfit_samples", "hyperfit_steps", "hyperfit_subset", "num_candidates", "gp_stride",
               "model_capacity", "model_inducing", "model_fit_subset", "model_fit_steps",
-              "model_particles", "model_steps"):
+              "model_particles", "model_steps", "critic_window"):
         v = getattr(cfg, f)
         if not _integer(v) or v < 1:
             _fail(f, f"must be a positive integer, got {v!r}")

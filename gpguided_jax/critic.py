@@ -6,8 +6,9 @@ a ~ N(c(s; theta_c), sigma^2) takes `critic_steps` Adam steps on the determinist
 
   J(theta) = (1/N) sum_n E_{a ~ N(c(s_n), sigma^2)} mu_Q(s_n, a)
 
-over the N decision states of the update's episodes, with no new samples. For the ARD
-squared-exponential kernel and mu_Q(x) = m0 + k(B, x)^T alpha, the expectation is closed form
+over the N decision states of the update's episodes (with `critic_window` W > 1, of the last W
+updates' episodes: the method's state, a `Window`, keeps the W - 1 before), with no new
+samples. For the ARD squared-exponential kernel and mu_Q(x) = m0 + k(B, x)^T alpha, the expectation is closed form
 (`expected_q`): the kernel's action factor integrates to
 
   E_a exp(-(a - b_i)^2 / (2 l_a^2)) = (l_a^2 / (l_a^2 + sigma^2))^(1/2)
@@ -40,6 +41,8 @@ N(c(s), sigma^2): white, Ornstein-Uhlenbeck and coloured noise, with or without 
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -240,18 +243,51 @@ def improve(controller, gp, kernel, theta_data, theta, states, factors, weights,
     return new, end - start, mean_kl(controller, theta_data, new, states, weights), frac
 
 
+class Window(NamedTuple):
+    """gp_critic's own state with `critic_window` W > 1: the decision states of the W - 1 updates
+    before, the most recent first, and their weights (0 for a state after an episode's end, and
+    for the slots of updates not yet run): (W - 1, N, obs), (W - 1, N)."""
+    states: jax.Array
+    weights: jax.Array
+
+
+def init(prog, key, cfg):
+    """The empty `Window` (every weight 0), or () with a window of the update alone."""
+    del key, cfg
+    static = prog.config
+    if static.critic_window == 1:
+        return ()
+    per_update = static.episodes_per_update * -(-static.episode_length // prog.hold)
+    shape = (static.critic_window - 1, per_update)
+    return Window(states=jnp.zeros(shape + (prog.task.obs_dim,), prog.dtype),
+                  weights=jnp.zeros(shape, prog.dtype))
+
+
 def _decision_states(prog, eps):
-    """The update's decision states (every `hold` steps), their GP inputs without the action, and
-    their weights (0 after an episode's end): (N, obs), (N, D - 1), (N,)."""
+    """The update's decision states (every `hold` steps) and their weights (0 after an episode's
+    end): (N, obs), (N,)."""
     states = eps.states[:, ::prog.hold]
-    obs_dim = states.shape[-1]
-    flat = states.reshape(-1, obs_dim)
-    x = jax.vmap(lambda s: prog.task.features(s, jnp.zeros((), s.dtype)))(flat)[:, :-1]
+    flat = states.reshape(-1, states.shape[-1])
     if eps.alive is None:
         weights = jnp.ones(flat.shape[0], flat.dtype)
     else:
         weights = eps.alive[:, ::prog.hold].reshape(-1).astype(flat.dtype)
-    return flat, x, weights
+    return flat, weights
+
+
+def _window_states(prog, window, eps):
+    """The surrogate's states, their GP inputs without the action and their weights, (N', obs),
+    (N', D - 1), (N',): the update's decision states, then the window's; and the window the next
+    update reads (these states in front, the oldest update's dropped)."""
+    states, weights = _decision_states(prog, eps)
+    if window != ():
+        states = jnp.concatenate([states[None], window.states]).reshape(-1, states.shape[-1])
+        weights = jnp.concatenate([weights[None], window.weights]).reshape(-1)
+        per_update = window.states.shape[1]
+        window = Window(states=states[:-per_update].reshape(window.states.shape),
+                        weights=weights[:-per_update].reshape(window.weights.shape))
+    x = jax.vmap(lambda s: prog.task.features(s, jnp.zeros((), s.dtype)))(states)[:, :-1]
+    return states, x, weights, window
 
 
 def unseen_error(prog, gp, kernel, eps, returns):
@@ -300,7 +336,8 @@ def critic_update(prog, cfg, state, batch):
     add the surrogate's gain, the mean KL, the fraction of the move taken, the critic's error on
     the update's episodes before the GP took them in (`unseen_error`) and the action
     length-scale."""
-    theta, opt_state, method_state, records = policy_gradient.q_gp_update(prog, cfg, state, batch)
+    theta, opt_state, _, records = policy_gradient.q_gp_update(prog, cfg, state, batch)
+    states, x, weights, method_state = _window_states(prog, state.method_state, batch.episodes)
     zero = jnp.zeros((), prog.dtype)
     records = dict(records, critic_error=unseen_error(prog, state.gp, state.kernel,
                                                       batch.episodes, batch.returns),
@@ -308,7 +345,6 @@ def critic_update(prog, cfg, state, batch):
     if prog.config.critic_steps == 0:
         return theta, opt_state, method_state, dict(
             records, critic_gain=zero, critic_kl=zero, critic_step_fraction=zero)
-    states, x, weights = _decision_states(prog, batch.episodes)
     kappa = prog.config.critic_optimism or None  # 0: the mean alone, no variance computed
     factors = jax.vmap(lambda xs: state_factors(batch.gp, state.kernel, xs))(x)
     new, gain, kl, frac = improve(
@@ -321,7 +357,7 @@ def critic_update(prog, cfg, state, batch):
 
 
 methods.register(methods.Method(
-    name="gp_critic", policy="fixed_noise", prior="q_gp", init=policy_gradient.no_state,
+    name="gp_critic", policy="fixed_noise", prior="q_gp", init=init,
     update=critic_update, records=RECORDS, explorations=("white", "ou", "coloured"),
     compare_with=("reinforce", "gp_pg"), fit_fields=methods.Q_GP_FIT_FIELDS,
     targets=bootstrapped_targets,

@@ -302,21 +302,31 @@ def test_with_no_critic_steps_it_is_gp_pg_bit_for_bit(critic_registered):
     prior = T.GPPrior(kernels.make_kernel_params(np.ones(4), 0.5, 0.05), jnp.asarray(-1.0))
     cfgs = {k: C.preset("tiny", method=critic_registered, critic_steps=k) for k in (0, 2)}
     cfgs["optimistic"] = cfgs[2].replace(critic_optimism=1.0)
+    cfgs["window"] = cfgs[2].replace(critic_window=2)
     progs = {k: T.make_program(c) for k, c in cfgs.items()}
     state = T.initial_state(progs[0], jax.random.PRNGKey(4), cfgs[0], prior)
+    assert state.method_state == () and critic.init(progs["window"], None, None).weights.sum() == 0
 
     @jax.jit
     def updates(state):
         keys = jax.random.split(jax.random.PRNGKey(5), cfgs[0].episodes_per_update)
         gp, eps, returns, _, _ = T.roll_out_and_take_in(progs[0], cfgs[0], state, keys)
         batch = T.Batch(eps, returns, gp)
+        # window W = 2 holding: other states at weight 0, this update's own states again, other
+        # states
+        own = eps.states[:, ::progs[0].hold].reshape(1, -1, eps.states.shape[-1])
+        ones = jnp.ones(own.shape[:2], own.dtype)
+        windows = (critic.Window(own + 0.5, 0.0 * ones), critic.Window(own, ones),
+                   critic.Window(own + 0.5, ones))
+        windowed = [critic.critic_update(progs["window"], cfgs["window"],
+                                         state._replace(method_state=w), batch) for w in windows]
         return (policy_gradient.q_gp_update(progs[0], cfgs[0], state, batch),
                 *(critic.critic_update(progs[k], cfgs[k], state, batch)
                   for k in (0, 2, "optimistic")),
-                (eps, returns))
+                (eps, returns), windowed)
 
     ((theta, opt, _, rec), (theta0, opt0, _, rec0), (theta5, _, _, rec5), (theta_o, _, _, rec_o),
-     (eps, returns)) = updates(state)
+     (eps, returns), windowed) = updates(state)
     for a, b in zip(jax.tree_util.tree_leaves((theta, opt)), jax.tree_util.tree_leaves((theta0, opt0))):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     for f, v in rec.items():
@@ -335,6 +345,16 @@ def test_with_no_critic_steps_it_is_gp_pg_bit_for_bit(critic_registered):
     assert all(np.isfinite(float(v)) for v in rec_o.values())
     assert not np.array_equal(np.asarray(theta_o.controller.weights),
                               np.asarray(theta5.controller.weights))
+    # a window of updates: an empty one, or one that repeats the update's states, leaves the
+    # weighted means over the states, and so the step, as they are; other states move it
+    for (theta_w, _, window, rec_w), same in zip(windowed, (True, True, False)):
+        close = np.allclose(np.asarray(theta_w.controller.weights),
+                            np.asarray(theta5.controller.weights), rtol=1e-8, atol=1e-10)
+        assert close == same, (same, rec_w["critic_step_fraction"], rec5["critic_step_fraction"])
+        # the window the next update reads holds this update's decision states and weights
+        np.testing.assert_array_equal(np.asarray(window.states[0]),
+                                      np.asarray(eps.states[:, ::progs[0].hold]).reshape(-1, 2))
+        assert np.all(np.asarray(window.weights) == 1.0)
 
 
 # ------------------------------------------------------------------------------------------------
