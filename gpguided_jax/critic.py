@@ -8,8 +8,8 @@ a ~ N(c(s; theta_c), sigma^2) takes `critic_steps` Adam steps on the determinist
 
 over the N decision states of the update's episodes (with `critic_window` W > 1, of the last W
 updates' episodes: the method's state, a `Window`, keeps the W - 1 before), with no new
-samples. For the ARD squared-exponential kernel and mu_Q(x) = m0 + k(B, x)^T alpha, the expectation is closed form
-(`expected_q`): the kernel's action factor integrates to
+samples. For the ARD squared-exponential kernel and mu_Q(x) = m0 + k(B, x)^T alpha, the
+expectation is closed form (`expected_q`): the kernel's action factor integrates to
 
   E_a exp(-(a - b_i)^2 / (2 l_a^2)) = (l_a^2 / (l_a^2 + sigma^2))^(1/2)
                                        exp(-(c - b_i)^2 / (2 (l_a^2 + sigma^2))),
