@@ -24,6 +24,11 @@ docs/results/standard/<task>):
 ``targets`` gp_critic's GP targets on the tuning seeds (`TARGET_GRIDS`; Pendulum-v1 and the car):
             returns-to-go against lambda-returns. Writes targets.json; `heldout --only
             gp_critic_lambda` runs the better lambda-return on the held-out seeds.
+``retune``  gp_critic's own settings beyond the shared grid, on the tuning seeds (`RETUNE_GRID`):
+            a coordinate search from its tuned settings over the critic's uncertainty in the
+            score (kappa), the window and the GP's budget M. Writes retune.json; `heldout --only
+            gp_critic_retuned` runs its choice on the held-out seeds. It spends configurations
+            beyond the others' budget, so its row stands beside gp_critic's, not in its place.
 ``report``  tuning.json (the tuning records gathered), the figure (return of the deterministic
             policy against environment steps, mean and 95% t-band over seeds, the threshold
             dashed) and heldout_table.json, from which `docs_tables.py` renders the tables.
@@ -35,6 +40,8 @@ Usage:
   python experiments/standard_tasks.py targets --task pendulum-v1
   python experiments/standard_tasks.py heldout --task pendulum-v1 --only gp_critic_lambda
   python experiments/standard_tasks.py heldout --task pendulum-v1 --only gp_critic_m400
+  python experiments/standard_tasks.py retune --task pendulum-v1
+  python experiments/standard_tasks.py heldout --task pendulum-v1 --only gp_critic_retuned
 """
 
 from __future__ import annotations
@@ -68,10 +75,16 @@ RESTARTED = tuple(f"{m}_restart" for m in METHODS)
 # seeds is chosen; `heldout --only gp_critic_lambda` runs the better lambda-return on the held-out
 # seeds whichever is chosen, so that the critic's error is reported under both.
 TARGET_GRIDS = {"pendulum-v1": [0.25, 1.0], "mountaincar-continuous": [25.0, 100.0]}
-# gp_critic at its tuned settings with one more change, on the held-out seeds (an ablation added
-# after the tuning, not tuned): the targets stage's better lambda-return, and the GP's budget
-# M = 400 (the tuning's is the preset's 100)
-VARIANTS = {"gp_critic_lambda": "targets.json", "gp_critic_m400": {"gp_capacity": 400}}
+# gp_critic at its tuned settings with one more change, on the held-out seeds: the targets stage's
+# better lambda-return and the GP's budget M = 400 (the tuning's is the preset's 100), ablations
+# after the tuning, not tuned; and the `retune` stage's choice
+VARIANTS = {"gp_critic_lambda": ("targets.json", "best"), "gp_critic_m400": {"gp_capacity": 400},
+            "gp_critic_retuned": ("retune.json", "chosen")}
+# gp_critic's `retune` stage: from its tuned settings, first those settings alone (their score
+# again, the search's start), then kappa pessimistic and optimistic, a window of 4 and 16
+# updates' states, and M = 400; each stage over the best so far (`study.coordinate_search`)
+RETUNE_GRID = [("critic_optimism", [-1.0, 1.0]), ("critic_window", [4, 16]),
+               ("gp_capacity", [400])]
 CONFIGS_PER_METHOD = 8
 TUNING_SEEDS = study.TUNING_SEEDS
 HELDOUT_SEEDS = study.HELDOUT_SEEDS
@@ -235,8 +248,9 @@ def heldout(task: str, out: str, seeds, only: list[str], part: str | None = None
                                    {}).get("chosen", {})
         if name in VARIANTS:  # gp_critic's tuned settings and the variant's change
             change = VARIANTS[name]
-            if change == "targets.json":  # the better lambda-return of the `targets` stage
-                change = study.read_json(os.path.join(out, "targets.json"))["best"]
+            if isinstance(change, tuple):  # a stage's record: the settings under its key
+                file, key = change
+                change = study.read_json(os.path.join(out, file))[key]
             settings = {**settings, **change}
         meta = {"seeds": list(seeds), "settings": settings}
         if method in METHODS:
@@ -324,6 +338,23 @@ def targets(task: str, out: str) -> None:
         "best": {k: best["settings"][k] for k in ("critic_targets", "critic_lambda_horizon")}})
 
 
+def retune(task: str, out: str) -> None:
+    """gp_critic's `RETUNE_GRID` on the tuning seeds, a coordinate search from its tuned
+    settings (tuning/gp_critic.json), which are scored again as its first stage. Writes
+    retune.json: the grid, what was tried and the choice."""
+    tuned = study.read_json(os.path.join(out, "tuning", "gp_critic.json"))["chosen"]
+
+    def evaluate(configs):
+        return study.sweep_stage([method_overrides(task, "gp_critic", c) for c in configs],
+                                 study.final_return, method="gp_critic", preset=task,
+                                 seeds=TUNING_SEEDS)
+
+    result = study.coordinate_search([[{}]] + study.stages(RETUNE_GRID), evaluate, start=tuned,
+                                     log=lambda m: study.log(f"[retune {task}] {m}"))
+    study.write_json(os.path.join(out, "retune.json"), {
+        "task": task, "seeds": list(TUNING_SEEDS), "grid": RETUNE_GRID, **result})
+
+
 def steps_used(run_dir: str, cfg) -> np.ndarray:
     """(seeds,) environment steps that a method's learning episodes used. On a task that ends
     early the compiled roll-out keeps its full length, so the budget counts every slot; the steps
@@ -401,7 +432,7 @@ def report(task: str, out: str) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("stage", choices=["tune", "targets", "heldout", "report"])
+    p.add_argument("stage", choices=["tune", "targets", "retune", "heldout", "report"])
     p.add_argument("--task", required=True, choices=[t for t in config_lib.PRESETS
                                                      if "env" in config_lib.PRESETS[t]])
     p.add_argument("--out", default=None, help="default docs/results/standard/<task>")
@@ -411,7 +442,7 @@ def main(argv=None) -> int:
                    choices=[*METHODS, *RESTARTED, *VARIANTS, *BASELINES],
                    help="tune, heldout: these methods and baselines (heldout: also "
                    "<method>_restart, the method with episode_end='restart', and gp_critic's "
-                   "variants: gp_critic_lambda, gp_critic_m400)")
+                   "variants: gp_critic_lambda, gp_critic_m400, gp_critic_retuned)")
     args = p.parse_args(argv)
     if args.stage == "tune" and set(args.only) & {*RESTARTED, *VARIANTS}:
         p.error("tune: the restarted methods and gp_critic's variants take the settings tuned "
@@ -427,6 +458,8 @@ def main(argv=None) -> int:
         tune(args.task, out, args.only)
     elif args.stage == "targets":
         targets(args.task, out)
+    elif args.stage == "retune":
+        retune(args.task, out)
     elif args.stage == "heldout":
         heldout(args.task, out, HELDOUT_SEEDS, args.only, args.part)
     else:
