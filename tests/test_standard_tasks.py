@@ -1,4 +1,5 @@
-"""experiments/standard_tasks.py: the environment steps a method's learning episodes used."""
+"""experiments/standard_tasks.py: the environment steps a method's learning episodes used, the tuning,
+the retune stage, the held-out stage's resumption and the presets."""
 
 import importlib.util
 import math
@@ -112,3 +113,50 @@ def test_the_presets_hold_the_settings_the_tuning_chose():
                 assert math.isclose(preset[k], v, rel_tol=1e-12), (task, method, k)
             checked += 1
     assert checked == len(tasks) * len(script.METHODS)
+
+
+def test_retune_searches_the_critics_own_settings_from_its_tuned_ones(tmp_path, monkeypatch):
+    """The retune stage scores gp_critic's tuned settings again, then each of `RETUNE_GRID`'s
+    stages over the best so far (a static field: one program per value); `heldout --only
+    gp_critic_retuned` runs its choice over the tuned settings."""
+    from gpguided_jax import study
+
+    script = _script()
+    out = str(tmp_path)
+    tuned = {"critic_learning_rate": 0.03}
+    study.write_json(f"{out}/tuning/gp_critic.json", {"chosen": tuned})
+    calls = []
+    scores = {(): 0.0, ("critic_optimism", -1.0): -5.0, ("critic_optimism", 1.0): 3.0,
+              ("critic_window", 4): 1.0, ("critic_window", 16): 2.0, ("gp_capacity", 400): 9.0}
+
+    def fake_sweep(field, values, *, method, preset, seeds, overrides, progress):
+        assert method == "gp_critic" and list(seeds) == list(script.TUNING_SEEDS)
+        calls.append(overrides)
+        changed = [(k, v) for k, v in overrides.items() if k in dict(script.RETUNE_GRID)]
+        last = changed[-1] if changed else ()
+        ret = np.full((len(values), len(seeds), 10), scores[last])
+        return types.SimpleNamespace(records={"eval_return": ret})
+
+    monkeypatch.setattr(study.sweep, "run_sweep", fake_sweep)
+    script.retune("pendulum-v1", out)
+    rec = study.read_json(f"{out}/retune.json")
+    assert [t["settings"] for t in rec["tried"]] == [
+        tuned, {**tuned, "critic_optimism": -1.0}, {**tuned, "critic_optimism": 1.0},
+        {**tuned, "critic_optimism": 1.0, "critic_window": 4},
+        {**tuned, "critic_optimism": 1.0, "critic_window": 16},
+        {**tuned, "critic_optimism": 1.0, "gp_capacity": 400}]
+    assert len(calls) == 6  # each configuration its own program: the fields are static
+    assert rec["chosen"] == {**tuned, "critic_optimism": 1.0, "gp_capacity": 400}
+    runs = []
+
+    def fake_run(preset, method, seeds, run_dir, overrides, **kw):
+        runs.append((method, overrides))
+        os.makedirs(run_dir, exist_ok=True)
+        np.savez(os.path.join(run_dir, "results.npz"), mean_return=np.ones((1, 1, 3)),
+                 mean_reward=np.ones((1, 1, 3)))
+        return study.MethodRun({"eval_return": np.ones((1, 3))}, np.arange(3), 2.0)
+
+    monkeypatch.setattr(study, "run_method", fake_run)
+    script.heldout("pendulum-v1", out, [1000], ["gp_critic_retuned"])
+    assert runs[0][0] == "gp_critic"
+    assert {k: runs[0][1][k] for k in rec["chosen"]} == rec["chosen"]
