@@ -384,6 +384,30 @@ def standard_critic_table(task: str) -> str:
     return critic_table(os.path.join("standard", task, "critic_diagnostics.json"))
 
 
+RETUNE_TASKS = ("pendulum-v1", "mountaincar-continuous")
+
+
+def standard_retune_table(task: str) -> str:
+    """`experiments/standard_tasks.py retune`: gp_critic's own settings on the tuning seeds."""
+    path = os.path.join("standard", task, "retune.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        d = json.load(f)
+    start = d["tried"][0]["settings"]
+    lines = ["| change from the tuned settings | score (tuning seeds) | unhealthy seeds | chosen |",
+             "|---|---|---|---|"]
+    for t in d["tried"]:
+        change = {k: v for k, v in t["settings"].items() if start.get(k) != v}
+        name = ", ".join(f"{k} = {v:g}" for k, v in change.items()) or "none (the tuned settings)"
+        lines.append(f"| {name} | {t['score']:.1f} | {t['unhealthy_seeds']} | "
+                     f"{'yes' if t['settings'] == d['chosen'] else ''} |")
+    lines.append("")
+    lines.append(f"Tuning seeds {d['seeds']}; a coordinate search from gp_critic's tuned "
+                 "settings, each stage over the best so far; score: the final return of the "
+                 "deterministic policy (last 10% of evaluations, mean over seeds). "
+                 + _source(path))
+    return "\n".join(lines)
+
+
 def standard_targets_table(task: str) -> str:
     """`experiments/standard_tasks.py targets`: gp_critic's GP targets on the tuning seeds."""
     path = os.path.join("standard", task, "targets.json")
@@ -730,6 +754,8 @@ TABLES = {
     **{f"standard_{t.replace('-', '_')}": (lambda t=t: standard_table(t)) for t in STANDARD_TASKS},
     **{f"standard_targets_{t.replace('-', '_')}": (lambda t=t: standard_targets_table(t))
        for t in ("pendulum-v1", "mountaincar-continuous")},
+    **{f"standard_retune_{t.replace('-', '_')}": (lambda t=t: standard_retune_table(t))
+       for t in RETUNE_TASKS},
     "exploration_critic": lambda: critic_table(os.path.join("exploration",
                                                             "critic_diagnostics.json")),
     **{f"standard_critic_{t.replace('-', '_')}": (lambda t=t: standard_critic_table(t))

@@ -427,7 +427,8 @@ def report(task: str, out: str) -> None:
     study.log(f"wrote {figure} and {out}/heldout_table.json")
     study.critic_diagnostics({n: os.path.join(out, "methods", n, "results.npz")
                               for n in (*METHODS, *RESTARTED, *VARIANTS) if n in names},
-                             os.path.join(out, "critic_diagnostics.json"))
+                             os.path.join(out, "critic_diagnostics.json"),
+                             os.path.join(ROOT, "docs", "figures", f"standard_critic_{task}.png"))
 
 
 def main(argv=None) -> int:

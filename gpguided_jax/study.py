@@ -363,14 +363,17 @@ def run_parts(path: str, header: dict, parts: dict, run: Callable[[str, dict], d
 # ---------------------------------------------------------------------------------------- reports
 
 
-def critic_diagnostics(runs: dict, path: str) -> None:
+def critic_diagnostics(runs: dict, path: str, figure: str | None = None) -> None:
     """What would limit gp_critic in held-out runs, written to `path` (JSON): for each run
     (name -> its results.npz) that records the critic, over its seeds, the critic's error on
     returns it had not seen (1 - R^2) over the first 10% and the last 10% of updates, the action
     length-scale of its kernel, and the fraction of the surrogate's move the trust region let
     through and the mean KL over the last 10%. A run whose results.npz is not here is left out;
-    with none, the earlier file is kept."""
-    rows = []
+    with none, the earlier file is kept.
+
+    `figure`: also draw, per update, the medians over seeds of the critic's error, the fraction of
+    the move taken and the mean KL, a line per run, into this PNG file."""
+    rows, lines = [], {}
     for name, results in runs.items():
         if not os.path.exists(results):
             continue
@@ -389,8 +392,34 @@ def critic_diagnostics(runs: dict, path: str) -> None:
             lengthscale_max=float(ls.max()),
             fraction_last=float(np.median(rec["critic_step_fraction"][:, -tail:])),
             kl_last=float(np.median(rec["critic_kl"][:, -tail:]))))
+        lines[name] = rec
     if rows:
         write_json(path, {"rows": rows})
+    if lines and figure is not None:
+        _critic_figure(lines, figure)
+
+
+def _critic_figure(runs: dict, figure: str) -> None:
+    import matplotlib.pyplot as plt
+
+    panels = (("critic_error", "critic error 1 − R² (unseen returns)", "log"),
+              ("critic_step_fraction", "fraction of the move taken", "log"),
+              ("critic_kl", "mean KL after the steps [nats]", "linear"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(12, 3.4))
+    for ax, (key, label, scale) in zip(axes, panels):
+        for name, rec in runs.items():
+            med = np.median(rec[key], axis=0)
+            ax.plot(np.arange(1, med.size + 1), np.maximum(med, 1e-4) if scale == "log" else med,
+                    label=name)
+        ax.set_yscale(scale)
+        ax.set_xlabel("update")
+        ax.set_title(label, fontsize=9)
+    axes[0].axhline(1.0, color="k", ls="--", lw=0.8)  # no better than the returns' mean
+    axes[0].legend(fontsize=7)
+    fig.suptitle("gp_critic, median over held-out seeds", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(figure, dpi=100)
+    plt.close(fig)
 
 
 def final(curves) -> np.ndarray:

@@ -254,7 +254,9 @@ def test_critic_diagnostics_reads_each_run_that_records_the_critic(tmp_path):
     np.savez(tmp_path / "plain.npz", eval_return=np.zeros((1, seeds, updates)))
     out = tmp_path / "diag.json"
     study.critic_diagnostics({"a": str(tmp_path / "critic.npz"), "b": str(tmp_path / "plain.npz"),
-                              "c": str(tmp_path / "absent.npz")}, str(out))
+                              "c": str(tmp_path / "absent.npz")}, str(out),
+                             str(tmp_path / "diag.png"))
+    assert (tmp_path / "diag.png").stat().st_size > 0
     (row,) = json.loads(out.read_text())["rows"]
     first = [rec["critic_error"][0, s, u] for s in range(seeds) for u in range(2)]
     last = [rec["critic_kl"][0, s, u] for s in range(seeds) for u in range(18, 20)]
