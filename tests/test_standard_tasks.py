@@ -160,3 +160,7 @@ def test_retune_searches_the_critics_own_settings_from_its_tuned_ones(tmp_path, 
     script.heldout("pendulum-v1", out, [1000], ["gp_critic_retuned"])
     assert runs[0][0] == "gp_critic"
     assert {k: runs[0][1][k] for k in rec["chosen"]} == rec["chosen"]
+    # a retune that keeps the tuned settings runs nothing again: its row would be gp_critic's
+    study.write_json(f"{out}/retune.json", {**rec, "chosen": tuned})
+    script.heldout("pendulum-v1", out, [1000], ["gp_critic_retuned"])
+    assert len(runs) == 1
