@@ -403,8 +403,9 @@ def standard_retune_table(task: str) -> str:
     lines.append("")
     lines.append(f"Tuning seeds {d['seeds']}; a coordinate search from gp_critic's tuned "
                  "settings, each stage over the best so far; score: the final return of the "
-                 "deterministic policy (last 10% of evaluations, mean over seeds). "
-                 + _source(path))
+                 "deterministic policy (last 10% of evaluations, mean over seeds); unhealthy "
+                 "seeds: those whose gradient was ever not finite or whose GP's health check "
+                 "ever fired (that take-in is then undone). " + _source(path))
     return "\n".join(lines)
 
 
