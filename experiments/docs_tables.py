@@ -384,7 +384,8 @@ def standard_critic_table(task: str) -> str:
     return critic_table(os.path.join("standard", task, "critic_diagnostics.json"))
 
 
-RETUNE_TASKS = ("pendulum-v1", "mountaincar-continuous")
+RETUNE_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
+                "inverted-double-pendulum")
 
 
 def standard_retune_table(task: str) -> str:
