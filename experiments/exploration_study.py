@@ -21,6 +21,12 @@ Stages (each writes under --out, default docs/results/exploration):
             `gpguided_jax.reproduce` run per (method, scheme) under heldout/. Writes heldout.json
             (each run's settings and wall time; it resumes: a run recorded with the same settings
             is not run again).
+``retune``  gp_critic's own settings beyond the shared grid, on the tuning seeds (`RETUNE_GRID`): a
+            coordinate search from its tuned settings, scored again first, over the window and
+            the GP's budget M (kappa needs float64; the study runs in float32). Writes
+            retune.json; ``heldout`` then runs its choice as gp_critic/retuned, where it differs
+            from the tuned settings. It spends configurations beyond the others' budget, so its
+            row stands beside gp_critic's.
 ``report``  heldout_table.json (steps to 50% and 90% success on `study.env_steps`, final success
             and reward per cell; the guidance against the same correlated noise unguided), the
             figure, and the action length-scale fitted under each scheme.
@@ -36,6 +42,7 @@ Usage:
   python experiments/exploration_study.py reach
   python experiments/exploration_study.py tune
   python experiments/exploration_study.py heldout
+  python experiments/exploration_study.py retune
   python experiments/exploration_study.py baselines-tune
   python experiments/exploration_study.py baselines
   python experiments/exploration_study.py report
@@ -160,6 +167,11 @@ ABLATION = {
     "gp_critic": ("white", "ou_0.5s", "hold_0.5s"),
 }
 DTYPE = "float32"
+# gp_critic's `retune` stage (as experiments/standard_tasks.py's): a window of 4 and 16 updates'
+# states, then M = 400, each stage over the best so far from its tuned settings; its held-out run
+# is the part gp_critic/RETUNED
+RETUNE_GRID = [("critic_window", [4, 16]), ("gp_capacity", [400])]
+RETUNED = "retuned"
 
 # brax PPO and SAC (`baselines-tune`): the same budget as each method, CONFIGS_PER_METHOD
 # configurations x the tuning seeds, by coordinate search from the white-noise study's choice
@@ -314,6 +326,11 @@ def heldout(out: str, only=None) -> dict:
     tuning = study.read_json(os.path.join(out, "tuning.json"))
     parts = {f"{m}/{scheme}": settings_of(tuning["methods"][m]["chosen"], scheme)
              for m in only or METHODS for scheme in ABLATION[m]}
+    retuned = study.read_json(os.path.join(out, "retune.json"))
+    if ("gp_critic" in (only or METHODS) and retuned is not None
+            and retuned["chosen"] != tuning["methods"]["gp_critic"]["chosen"]):
+        chosen = retuned["chosen"]
+        parts[f"gp_critic/{RETUNED}"] = settings_of(chosen, chosen["scheme"])
 
     def run(key, overrides):
         run = study.run_method("swingup", key.split("/")[0], HELDOUT_SEEDS,
@@ -323,6 +340,24 @@ def heldout(out: str, only=None) -> dict:
 
     return study.run_parts(os.path.join(out, "heldout.json"), {"seeds": list(HELDOUT_SEEDS)},
                            parts, run, log=lambda m: log(f"[heldout] {m}"))
+
+
+def retune(out: str) -> dict:
+    """gp_critic's `RETUNE_GRID` on the tuning seeds, from its tuned settings (tuning.json), which
+    are scored again as the first stage. Writes retune.json."""
+    tuned = study.read_json(os.path.join(out, "tuning.json"))["methods"]["gp_critic"]["chosen"]
+
+    def evaluate(configs):
+        overrides = [{**settings_of(c, c["scheme"]), "dtype": DTYPE} for c in configs]
+        return study.sweep_stage(overrides, study.final_success, method="gp_critic",
+                                 preset="swingup", seeds=TUNING_SEEDS)
+
+    result = study.coordinate_search([[{}]] + study.stages(RETUNE_GRID), evaluate,
+                                     key=study.by_success, start=tuned,
+                                     log=lambda m: log(f"[retune] {m}"))
+    study.write_json(os.path.join(out, "retune.json"), {
+        "seeds": list(TUNING_SEEDS), "dtype": DTYPE, "grid": RETUNE_GRID, **result})
+    return result
 
 
 # -------------------------------------------------------------------------------------- baselines
@@ -432,7 +467,7 @@ def report(out: str) -> str:
     guide = all(have.values())
     finals = {}
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    order = [f"{m}/{x}" for m in METHODS for x in ABLATION[m]]
+    order = [f"{m}/{x}" for m in METHODS for x in (*ABLATION[m], RETUNED)]
     for key in sorted(meta["runs"], key=order.index):
         run = meta["runs"][key]
         method, scheme = key.split("/")
@@ -494,7 +529,7 @@ def report(out: str) -> str:
     study.write_json(os.path.join(out, "heldout_table.json"), table)
     study.critic_diagnostics({f"gp_critic ({scheme})": os.path.join(out, "heldout", "gp_critic",
                                                                    scheme, "results.npz")
-                              for scheme in ABLATION["gp_critic"]},
+                              for scheme in (*ABLATION["gp_critic"], RETUNED)},
                              os.path.join(out, "critic_diagnostics.json"))
     return json.dumps(table["rows"], indent=1)
 
@@ -590,8 +625,8 @@ def standard(task: str, out: str, only=None) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("stage", choices=("reach", "tune", "heldout", "baselines-tune", "baselines",
-                                      "report", "standard-tune", "standard"))
+    ap.add_argument("stage", choices=("reach", "tune", "heldout", "retune", "baselines-tune",
+                                      "baselines", "report", "standard-tune", "standard"))
     ap.add_argument("--task", default="mountaincar-continuous", choices=sorted(STANDARD_SCHEMES),
                     help="the standard task of the `standard` stage")
     ap.add_argument("--out", default="docs/results/exploration")
@@ -611,6 +646,8 @@ def main(argv=None) -> int:
         tune(args.out, args.only)
     elif args.stage == "heldout":
         heldout(args.out, args.only)
+    elif args.stage == "retune":
+        retune(args.out)
     elif args.stage == "baselines-tune":
         baselines_tune(args.out, args.only)
     elif args.stage == "baselines":
