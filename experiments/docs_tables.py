@@ -578,7 +578,11 @@ def exploration_table() -> str:
              "[N·m] | wall time |", "|---|---|---|---|---|---|---|---|---|"]
     for r in d["rows"]:
         ls = "–" if r["action_length_scale"] is None else f"{r['action_length_scale']:.3g}"
-        lines.append(f"| {r['method']} | {r['scheme']} | {'yes' if r['chosen'] else ''} | "
+        scheme = r["scheme"] if r["scheme"] != "retuned" else (
+            "its retune's choice: " + ", ".join(f"{k} = {r['settings'][k]:g}" for k in
+                                                ("critic_window", "gp_capacity")
+                                                if k in r["settings"]))
+        lines.append(f"| {r['method']} | {scheme} | {'yes' if r['chosen'] else ''} | "
                      f"{_steps_cell(r['steps_to_50'], n)} | {_steps_cell(r['steps_to_90'], n)} | "
                      f"{r['final_success']:.2f} | {r['final_reward']:.3f} | {ls} | "
                      f"{r['wall_s']:.0f} s |")

@@ -104,3 +104,56 @@ def test_swingup_preset_uses_the_tuned_settings():
     with open(os.path.join(root, "docs", "results", "swingup", "tuning.json")) as f:
         white = json.load(f)
     assert not set(white["seeds"]) & set(range(1000, 1010))
+
+
+def test_the_exploration_studys_retune_runs_its_choice_only_where_it_differs(tmp_path,
+                                                                            monkeypatch):
+    """`retune` scores gp_critic's tuned settings again, then `RETUNE_GRID` over the best so far
+    (by success, then reward); `heldout` adds the part gp_critic/retuned with its choice, and none
+    where the choice is the tuned settings."""
+    import importlib.util
+    import os
+
+    from gpguided_jax import study
+
+    root = os.path.dirname(os.path.dirname(__file__))
+    spec = importlib.util.spec_from_file_location(
+        "exploration_study", os.path.join(root, "experiments", "exploration_study.py"))
+    es = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(es)
+    out = str(tmp_path)
+    tuned = {"scheme": "hold_0.5s", "critic_learning_rate": 0.01}
+    study.write_json(f"{out}/tuning.json", {"methods": {"gp_critic": {"chosen": tuned}}})
+    reward = {(): -6.0, ("critic_window", 4): -5.0, ("critic_window", 16): -5.5,
+              ("gp_capacity", 400): -7.0}
+
+    def fake_sweep(overrides, score, *, method, preset, seeds):
+        assert method == "gp_critic" and preset == "swingup" and list(seeds) == [100, 101]
+        out_ = []
+        for o in overrides:
+            assert o["hold_time"] == 0.5 and o["dtype"] == es.DTYPE
+            changed = [(k, o[k]) for k, _ in es.RETUNE_GRID if k in o]
+            out_.append({"success": 0.0, "reward": reward[changed[-1] if changed else ()]})
+        return out_
+
+    monkeypatch.setattr(study, "sweep_stage", fake_sweep)
+    result = es.retune(out)
+    assert [t["settings"] for t in result["tried"]] == [
+        tuned, {**tuned, "critic_window": 4}, {**tuned, "critic_window": 16},
+        {**tuned, "critic_window": 4, "gp_capacity": 400}]
+    assert result["chosen"] == {**tuned, "critic_window": 4}
+    runs = {}
+
+    def fake_run_parts(path, header, parts, run, log):
+        runs.update(parts)
+
+    monkeypatch.setattr(study, "run_parts", fake_run_parts)
+    es.heldout(out, ["gp_critic"])
+    assert runs[f"gp_critic/{es.RETUNED}"] == {**es.settings_of(tuned, "hold_0.5s"),
+                                               "critic_window": 4}
+    assert set(runs) == {f"gp_critic/{s}" for s in es.ABLATION["gp_critic"]} | {
+        f"gp_critic/{es.RETUNED}"}
+    runs.clear()
+    study.write_json(f"{out}/retune.json", {**result, "chosen": tuned})
+    es.heldout(out, ["gp_critic"])
+    assert set(runs) == {f"gp_critic/{s}" for s in es.ABLATION["gp_critic"]}
