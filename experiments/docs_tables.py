@@ -388,25 +388,32 @@ RETUNE_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
                 "inverted-double-pendulum")
 
 
-def standard_retune_table(task: str) -> str:
-    """`experiments/standard_tasks.py retune`: gp_critic's own settings on the tuning seeds."""
-    path = os.path.join("standard", task, "retune.json")
+def retune_table(path: str) -> str:
+    """A `retune` stage's record (`experiments/standard_tasks.py retune`, `exploration_study.py
+    retune`): gp_critic's own settings on the tuning seeds, each change from its tuned settings
+    and its score (the final return, or the final success and reward per step)."""
     with open(os.path.join(RESULTS, path)) as f:
         d = json.load(f)
     start = d["tried"][0]["settings"]
-    lines = ["| change from the tuned settings | score (tuning seeds) | unhealthy seeds | chosen |",
-             "|---|---|---|---|"]
+    by_success = "success" in d["tried"][0]
+    score = "final success | final reward/step" if by_success else "score (tuning seeds)"
+    lines = [f"| change from the tuned settings | {score} | unhealthy seeds | chosen |",
+             "|---|---|---|---|" + ("---|" if by_success else "")]
     for t in d["tried"]:
         change = {k: v for k, v in t["settings"].items() if start.get(k) != v}
         name = ", ".join(f"{k} = {v:g}" for k, v in change.items()) or "none (the tuned settings)"
-        lines.append(f"| {name} | {t['score']:.1f} | {t['unhealthy_seeds']} | "
+        value = (f"{t['success']:.2f} | {t['reward']:.3f}" if by_success else f"{t['score']:.1f}")
+        lines.append(f"| {name} | {value} | {t['unhealthy_seeds']} | "
                      f"{'yes' if t['settings'] == d['chosen'] else ''} |")
     lines.append("")
     lines.append(f"Tuning seeds {d['seeds']}; a coordinate search from gp_critic's tuned "
-                 "settings, each stage over the best so far; score: the final return of the "
-                 "deterministic policy (last 10% of evaluations, mean over seeds); unhealthy "
-                 "seeds: those whose gradient was ever not finite or whose GP's health check "
-                 "ever fired (that take-in is then undone). " + _source(path))
+                 "settings, each stage over the best so far; "
+                 + ("the deterministic policy's success rate and reward per step at the end of "
+                    "the run, means over seeds, ordered by success, then reward" if by_success
+                    else "score: the final return of the deterministic policy (last 10% of "
+                         "evaluations, mean over seeds)")
+                 + "; unhealthy seeds: those whose gradient was ever not finite or whose GP's "
+                 "health check ever fired (that take-in is then undone). " + _source(path))
     return "\n".join(lines)
 
 
@@ -760,8 +767,9 @@ TABLES = {
     **{f"standard_{t.replace('-', '_')}": (lambda t=t: standard_table(t)) for t in STANDARD_TASKS},
     **{f"standard_targets_{t.replace('-', '_')}": (lambda t=t: standard_targets_table(t))
        for t in ("pendulum-v1", "mountaincar-continuous")},
-    **{f"standard_retune_{t.replace('-', '_')}": (lambda t=t: standard_retune_table(t))
-       for t in RETUNE_TASKS},
+    **{f"standard_retune_{t.replace('-', '_')}": (
+        lambda t=t: retune_table(os.path.join("standard", t, "retune.json"))) for t in RETUNE_TASKS},
+    "exploration_retune": lambda: retune_table(os.path.join("exploration", "retune.json")),
     "exploration_critic": lambda: critic_table(os.path.join("exploration",
                                                             "critic_diagnostics.json")),
     **{f"standard_critic_{t.replace('-', '_')}": (lambda t=t: standard_critic_table(t))
