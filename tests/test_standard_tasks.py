@@ -60,6 +60,24 @@ def test_the_tuning_searches_the_horizon_as_a_discount_from_the_presets_own(monk
                              "init_log_std": math.log(tasks.make_task("gymnax:Pendulum-v1").max_action)}
 
 
+def _fake_heldout_runs(monkeypatch) -> list:
+    """Replaces `study.run_method` by a stand-in that writes a one-update run and records
+    (method, overrides) of each call in the list returned."""
+    from gpguided_jax import study
+
+    runs = []
+
+    def fake_run(preset, method, seeds, run_dir, overrides, **kw):
+        runs.append((method, overrides))
+        os.makedirs(run_dir, exist_ok=True)
+        np.savez(os.path.join(run_dir, "results.npz"), mean_return=np.ones((1, 1, 3)),
+                 mean_reward=np.ones((1, 1, 3)))
+        return study.MethodRun({"eval_return": np.ones((1, 3))}, np.arange(3), 2.0)
+
+    monkeypatch.setattr(study, "run_method", fake_run)
+    return runs
+
+
 def test_heldout_skips_a_name_done_with_the_same_seeds_and_settings(tmp_path, monkeypatch):
     from gpguided_jax import study
 
@@ -69,21 +87,13 @@ def test_heldout_skips_a_name_done_with_the_same_seeds_and_settings(tmp_path, mo
     done = {"seeds": [1000], "settings": {"learning_rate": 0.03}, "episode_end": "mask",
             "wall_s": 1.0}
     study.write_json(f"{out}/heldout/reinforce.json", done)
-    runs = []
-
-    def fake_run(preset, method, seeds, run_dir, overrides, **kw):
-        runs.append(overrides)
-        os.makedirs(run_dir, exist_ok=True)
-        np.savez(os.path.join(run_dir, "results.npz"), mean_return=np.ones((1, 1, 3)),
-                 mean_reward=np.ones((1, 1, 3)))
-        return study.MethodRun({"eval_return": np.ones((1, 3))}, np.arange(3), 2.0)
-
-    monkeypatch.setattr(study, "run_method", fake_run)
+    runs = _fake_heldout_runs(monkeypatch)
     script.heldout("pendulum-v1", out, [1000], ["reinforce"])
     assert runs == []
     study.write_json(f"{out}/tuning/reinforce.json", {"chosen": {"learning_rate": 0.1}})
     script.heldout("pendulum-v1", out, [1000], ["reinforce"])
-    assert runs == [{"learning_rate": 0.1, "discount_horizon": 1.0, "episode_end": "mask"}]
+    assert runs == [("reinforce", {"learning_rate": 0.1, "discount_horizon": 1.0,
+                                   "episode_end": "mask"})]
     assert study.read_json(f"{out}/heldout/reinforce.json")["wall_s"] == 2.0
 
 
@@ -147,16 +157,7 @@ def test_retune_searches_the_critics_own_settings_from_its_tuned_ones(tmp_path, 
         {**tuned, "critic_optimism": 1.0, "gp_capacity": 400}]
     assert len(calls) == 6  # each configuration its own program: the fields are static
     assert rec["chosen"] == {**tuned, "critic_optimism": 1.0, "gp_capacity": 400}
-    runs = []
-
-    def fake_run(preset, method, seeds, run_dir, overrides, **kw):
-        runs.append((method, overrides))
-        os.makedirs(run_dir, exist_ok=True)
-        np.savez(os.path.join(run_dir, "results.npz"), mean_return=np.ones((1, 1, 3)),
-                 mean_reward=np.ones((1, 1, 3)))
-        return study.MethodRun({"eval_return": np.ones((1, 3))}, np.arange(3), 2.0)
-
-    monkeypatch.setattr(study, "run_method", fake_run)
+    runs = _fake_heldout_runs(monkeypatch)
     script.heldout("pendulum-v1", out, [1000], ["gp_critic_retuned"])
     assert runs[0][0] == "gp_critic"
     assert {k: runs[0][1][k] for k in rec["chosen"]} == rec["chosen"]
