@@ -352,9 +352,8 @@ def retune(out: str) -> dict:
         return study.sweep_stage(overrides, study.final_success, method="gp_critic",
                                  preset="swingup", seeds=TUNING_SEEDS)
 
-    result = study.coordinate_search([[{}]] + study.stages(RETUNE_GRID), evaluate,
-                                     key=study.by_success, start=tuned,
-                                     log=lambda m: log(f"[retune] {m}"))
+    result = study.search_beyond(tuned, RETUNE_GRID, evaluate, key=study.by_success,
+                                 log=lambda m: log(f"[retune] {m}"))
     study.write_json(os.path.join(out, "retune.json"), {
         "seeds": list(TUNING_SEEDS), "dtype": DTYPE, "grid": RETUNE_GRID, **result})
     return result

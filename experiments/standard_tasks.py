@@ -353,8 +353,8 @@ def retune(task: str, out: str) -> None:
                                  study.final_return, method="gp_critic", preset=task,
                                  seeds=TUNING_SEEDS)
 
-    result = study.coordinate_search([[{}]] + study.stages(RETUNE_GRID), evaluate, start=tuned,
-                                     log=lambda m: study.log(f"[retune {task}] {m}"))
+    result = study.search_beyond(tuned, RETUNE_GRID, evaluate,
+                                 log=lambda m: study.log(f"[retune {task}] {m}"))
     study.write_json(os.path.join(out, "retune.json"), {
         "task": task, "seeds": list(TUNING_SEEDS), "grid": RETUNE_GRID, **result})
 

@@ -11,11 +11,12 @@ Here:
 
 * Tuning (`coordinate_search`): stages of configurations (`stages` of a grid), each stage's
   configurations applied over the best settings so far, the best configuration seen kept after
-  every stage. A method's stage is one `sweep.run_sweep` program (`sweep_stage`), its score a
-  function of the records (`final_return`, `final_success`; `by_score`, `by_success` order
-  them). A study whose settings are not the preset's tuned ones (`config.METHOD_PRESETS`) applies
-  them over the preset's own fields (`preset_own`), as explicit overrides: nothing here changes
-  the config module.
+  every stage; `search_beyond` searches settings a first tuning left alone, from its choice. A
+  method's stage is one `sweep.run_sweep` program (`sweep_stage`), its score a function of the
+  records (`final_return`, `final_success`; `by_score`, `by_success` order them). A study
+  whose settings are not the preset's tuned ones (`config.METHOD_PRESETS`) applies them over the
+  preset's own fields (`preset_own`), as explicit overrides: nothing here changes the config
+  module.
 * Held-out runs: one method alone through `reproduce.reproduce` with explicit overrides
   (`run_method`: its records, its environment-steps axis and its wall time, which
   `reproduce` measures), and the resumable record of a study's runs (`run_parts`, `finished`: a
@@ -212,6 +213,15 @@ def coordinate_search(stage_list: Iterable[list[dict]], evaluate: Callable[[list
             log(f"{settings}: {result}")
         chosen = dict(max(tried, key=key)["settings"])
     return {"tried": tried, "chosen": chosen}
+
+
+def search_beyond(tuned: dict, grid: Sequence[tuple], evaluate: Callable[[list[dict]], list],
+                  *, key: Callable = by_score, log: Callable[[str], None] = _silent) -> dict:
+    """A second coordinate search over settings a first tuning left alone (a `retune` stage): the
+    tuned settings scored again as its first stage, so that every change is set beside them on
+    the same footing, then `grid`'s stages over the best so far. Arguments and result as
+    `coordinate_search`'s."""
+    return coordinate_search([[{}]] + stages(grid), evaluate, key=key, start=tuned, log=log)
 
 
 def unhealthy_seeds(records: dict) -> int:
