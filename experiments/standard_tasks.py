@@ -24,9 +24,10 @@ docs/results/standard/<task>):
 ``targets`` gp_critic's GP targets on the tuning seeds (`TARGET_GRIDS`; Pendulum-v1 and the car):
             returns-to-go against lambda-returns. Writes targets.json; `heldout --only
             gp_critic_lambda` runs the better lambda-return on the held-out seeds.
-``retune``  gp_critic's own settings beyond the shared grid, on the tuning seeds (`RETUNE_GRID`):
+``retune``  gp_critic's own settings beyond the shared grid, on the tuning seeds (`retune_grid`):
             a coordinate search from its tuned settings over the critic's uncertainty in the
-            score (kappa), the window and the GP's budget M. Writes retune.json; `heldout --only
+            score (kappa), the window, the GP's budget M, and its gp_pg step's horizon and
+            learning rate. Writes retune.json; `heldout --only
             gp_critic_retuned` runs its choice on the held-out seeds. It spends configurations
             beyond the others' budget, so its row stands beside gp_critic's, not in its place.
 ``report``  tuning.json (the tuning records gathered), the figure (return of the deterministic
@@ -82,9 +83,11 @@ VARIANTS = {"gp_critic_lambda": ("targets.json", "best"), "gp_critic_m400": {"gp
             "gp_critic_retuned": ("retune.json", "chosen")}
 # gp_critic's `retune` stage: from its tuned settings, first those settings alone (their score
 # again, the search's start), then kappa pessimistic and optimistic, a window of 4 and 16
-# updates' states, and M = 400; each stage over the best so far (`study.coordinate_search`)
-RETUNE_GRID = [("critic_optimism", [-1.0, 1.0]), ("critic_window", [4, 16]),
-               ("gp_capacity", [400])]
+# updates' states, M = 400, and its gp_pg step's horizon and learning rate (the shared grid
+# leaves them at the preset's own); each stage over the best so far (`study.search_beyond`)
+def retune_grid(task: str) -> list:
+    return [("critic_optimism", [-1.0, 1.0]), ("critic_window", [4, 16]), ("gp_capacity", [400]),
+            ("horizon", horizons(task)), ("learning_rate", [0.003, 0.03])]
 CONFIGS_PER_METHOD = 8
 TUNING_SEEDS = study.TUNING_SEEDS
 HELDOUT_SEEDS = study.HELDOUT_SEEDS
@@ -343,7 +346,7 @@ def targets(task: str, out: str) -> None:
 
 
 def retune(task: str, out: str) -> None:
-    """gp_critic's `RETUNE_GRID` on the tuning seeds, a coordinate search from its tuned
+    """gp_critic's `retune_grid` on the tuning seeds, a coordinate search from its tuned
     settings (tuning/gp_critic.json), which are scored again as its first stage. Writes
     retune.json: the grid, what was tried and the choice."""
     tuned = study.read_json(os.path.join(out, "tuning", "gp_critic.json"))["chosen"]
@@ -353,10 +356,12 @@ def retune(task: str, out: str) -> None:
                                  study.final_return, method="gp_critic", preset=task,
                                  seeds=TUNING_SEEDS)
 
-    result = study.search_beyond(tuned, RETUNE_GRID, evaluate,
+    path = os.path.join(out, "retune.json")
+    done = study.read_json(path, {}).get("tried", [])  # a grown grid runs only its new stages
+    result = study.search_beyond(tuned, retune_grid(task), evaluate, done=done,
                                  log=lambda m: study.log(f"[retune {task}] {m}"))
-    study.write_json(os.path.join(out, "retune.json"), {
-        "task": task, "seeds": list(TUNING_SEEDS), "grid": RETUNE_GRID, **result})
+    study.write_json(path, {"task": task, "seeds": list(TUNING_SEEDS), "grid": retune_grid(task),
+                            **result})
 
 
 def steps_used(run_dir: str, cfg) -> np.ndarray:

@@ -216,12 +216,24 @@ def coordinate_search(stage_list: Iterable[list[dict]], evaluate: Callable[[list
 
 
 def search_beyond(tuned: dict, grid: Sequence[tuple], evaluate: Callable[[list[dict]], list],
-                  *, key: Callable = by_score, log: Callable[[str], None] = _silent) -> dict:
+                  *, key: Callable = by_score, log: Callable[[str], None] = _silent,
+                  done: Sequence[dict] = ()) -> dict:
     """A second coordinate search over settings a first tuning left alone (a `retune` stage): the
     tuned settings scored again as its first stage, so that every change is set beside them on
     the same footing, then `grid`'s stages over the best so far. Arguments and result as
-    `coordinate_search`'s."""
-    return coordinate_search([[{}]] + stages(grid), evaluate, key=key, start=tuned, log=log)
+    `coordinate_search`'s; `done`: records of an earlier search (its 'tried'), whose results a
+    stage takes instead of running again where it tries exactly their settings, so that a grid
+    grown by a stage runs only what is new."""
+    recorded = {json.dumps(t["settings"], sort_keys=True):
+                {k: v for k, v in t.items() if k != "settings"} for t in done}
+
+    def evaluate_new(configs):
+        keys = [json.dumps(c, sort_keys=True) for c in configs]
+        if all(k in recorded for k in keys):
+            return [recorded[k] for k in keys]
+        return evaluate(configs)
+
+    return coordinate_search([[{}]] + stages(grid), evaluate_new, key=key, start=tuned, log=log)
 
 
 def unhealthy_seeds(records: dict) -> int:

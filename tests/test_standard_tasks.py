@@ -126,9 +126,10 @@ def test_the_presets_hold_the_settings_the_tuning_chose():
 
 
 def test_retune_searches_the_critics_own_settings_from_its_tuned_ones(tmp_path, monkeypatch):
-    """The retune stage scores gp_critic's tuned settings again, then each of `RETUNE_GRID`'s
-    stages over the best so far (a static field: one program per value); `heldout --only
-    gp_critic_retuned` runs its choice over the tuned settings."""
+    """The retune stage scores gp_critic's tuned settings again, then each stage of `retune_grid`
+    over the best so far (a static field: one program per value; the horizon and the learning
+    rate: one sweep each); run again, it takes its recorded results and runs only a stage it has
+    not tried. `heldout --only gp_critic_retuned` runs its choice over the tuned settings."""
     from gpguided_jax import study
 
     script = _script()
@@ -141,26 +142,42 @@ def test_retune_searches_the_critics_own_settings_from_its_tuned_ones(tmp_path, 
 
     def fake_sweep(field, values, *, method, preset, seeds, overrides, progress):
         assert method == "gp_critic" and list(seeds) == list(script.TUNING_SEEDS)
-        calls.append(overrides)
-        changed = [(k, v) for k, v in overrides.items() if k in dict(script.RETUNE_GRID)]
-        last = changed[-1] if changed else ()
-        ret = np.full((len(values), len(seeds), 10), scores[last])
+        calls.append((field, overrides))
+        if field in ("discount", "learning_rate") and len(values) == 2:  # the traced stages
+            score = np.array([8.0, 10.0] if field == "discount" else [7.0, 6.0])
+        else:
+            changed = [(k, v) for k, v in overrides.items() if (k, v) in scores]
+            score = np.full(len(values), scores[changed[-1] if changed else ()])
+        ret = np.broadcast_to(score[:, None, None], (len(values), len(seeds), 10))
         return types.SimpleNamespace(records={"eval_return": ret})
 
     monkeypatch.setattr(study.sweep, "run_sweep", fake_sweep)
     script.retune("pendulum-v1", out)
     rec = study.read_json(f"{out}/retune.json")
+    best = {**tuned, "critic_optimism": 1.0, "gp_capacity": 400}
+    long = {**best, "horizon": 2.0}
     assert [t["settings"] for t in rec["tried"]] == [
         tuned, {**tuned, "critic_optimism": -1.0}, {**tuned, "critic_optimism": 1.0},
         {**tuned, "critic_optimism": 1.0, "critic_window": 4},
-        {**tuned, "critic_optimism": 1.0, "critic_window": 16},
-        {**tuned, "critic_optimism": 1.0, "gp_capacity": 400}]
-    assert len(calls) == 6  # each configuration its own program: the fields are static
-    assert rec["chosen"] == {**tuned, "critic_optimism": 1.0, "gp_capacity": 400}
+        {**tuned, "critic_optimism": 1.0, "critic_window": 16}, best,
+        {**best, "horizon": 0.5}, long, {**long, "learning_rate": 0.003},
+        {**long, "learning_rate": 0.03}]
+    # each static configuration its own program; the horizon and the learning rate one each
+    assert len(calls) == 8 and [c[0] for c in calls[-2:]] == ["discount", "learning_rate"]
+    assert rec["chosen"] == long
+    # again: every stage recorded, nothing runs; with the last stage's record gone, only it runs
+    calls.clear()
+    script.retune("pendulum-v1", out)
+    assert calls == [] and study.read_json(f"{out}/retune.json")["tried"] == rec["tried"]
+    study.write_json(f"{out}/retune.json", {**rec, "tried": rec["tried"][:-2]})
+    script.retune("pendulum-v1", out)
+    assert [c[0] for c in calls] == ["learning_rate"]
+    assert study.read_json(f"{out}/retune.json")["tried"] == rec["tried"]
     runs = _fake_heldout_runs(monkeypatch)
     script.heldout("pendulum-v1", out, [1000], ["gp_critic_retuned"])
     assert runs[0][0] == "gp_critic"
-    assert {k: runs[0][1][k] for k in rec["chosen"]} == rec["chosen"]
+    want = script.method_overrides("pendulum-v1", "gp_critic", rec["chosen"])  # horizon: discount
+    assert "discount" in want and {k: runs[0][1][k] for k in want} == want
     # a retune that keeps the tuned settings runs nothing again: its row would be gp_critic's
     study.write_json(f"{out}/retune.json", {**rec, "chosen": tuned})
     script.heldout("pendulum-v1", out, [1000], ["gp_critic_retuned"])
