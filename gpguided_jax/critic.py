@@ -280,7 +280,7 @@ def _window_states(prog, window, eps):
     (N', D - 1), (N',): the update's decision states, then the window's; and the window the next
     update reads (these states in front, the oldest update's dropped)."""
     states, weights = _decision_states(prog, eps)
-    if window != ():
+    if isinstance(window, Window):
         states = jnp.concatenate([states[None], window.states]).reshape(-1, states.shape[-1])
         weights = jnp.concatenate([weights[None], window.weights]).reshape(-1)
         per_update = window.states.shape[1]
