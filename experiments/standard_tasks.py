@@ -254,9 +254,9 @@ def heldout(task: str, out: str, seeds, only: list[str], part: str | None = None
             if isinstance(change, tuple):  # a stage's record: the settings under its key
                 file, key = change
                 change = study.read_json(os.path.join(out, file))[key]
-            if {**settings, **change} == settings and name == "gp_critic_retuned":
-                study.log(f"[{task} {name}] the retune stage kept gp_critic's tuned settings: "
-                          "its held-out run is gp_critic's")
+            if {**settings, **change} == settings:  # e.g. a retune that kept them
+                study.log(f"[{task} {name}] changes nothing in gp_critic's tuned settings: its "
+                          "held-out run is gp_critic's")
                 continue
             settings = {**settings, **change}
         meta = {"seeds": list(seeds), "settings": settings}
