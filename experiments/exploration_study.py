@@ -38,6 +38,12 @@ Stages (each writes under --out, default docs/results/exploration):
             `report` sets them beside the methods. Writes baselines.json (it resumes, as
             ``heldout``).
 
+``standard-tune``  On a standard task (--task, `STANDARD_SCHEMES`): the scheme each method
+            would choose at its tuned settings for that task, on the tuning seeds (mean final
+            return). Writes <task>/standard_tuning.json.
+``standard``  Each method under each of the task's schemes on held-out seeds 1000-1009. Writes
+            <task>/standard.json (it resumes, as ``heldout``).
+
 Usage:
   python experiments/exploration_study.py reach
   python experiments/exploration_study.py tune
@@ -46,6 +52,8 @@ Usage:
   python experiments/exploration_study.py baselines-tune
   python experiments/exploration_study.py baselines
   python experiments/exploration_study.py report
+  python experiments/exploration_study.py standard-tune --task inverted-pendulum
+  python experiments/exploration_study.py standard --task inverted-pendulum
 """
 
 from __future__ import annotations
@@ -219,7 +227,33 @@ STANDARD_SCHEMES = {
         "hold_10s": {"hold_time": 10.0},
         "parameter_episode": {"exploration": "parameter"},
     },
+    # brax's pendulums (steps of 0.04 s and 0.02 s): a pole left alone falls in about half a
+    # second (its time constant, (l/g)^1/2 for its 0.6 m, is a quarter of one), so OU noise of a
+    # fifth and of the whole fall, actions held for 0.08 s (2 and 4 steps), and the controller's
+    # weights perturbed once per episode
+    "inverted-pendulum": {
+        "white": {},
+        "ou_0.1s": {"exploration": "ou", "noise_correlation_time": 0.1},
+        "ou_0.5s": {"exploration": "ou", "noise_correlation_time": 0.5},
+        "hold_0.08s": {"hold_time": 0.08},
+        "parameter_episode": {"exploration": "parameter"},
+    },
+    "inverted-double-pendulum": {
+        "white": {},
+        "ou_0.1s": {"exploration": "ou", "noise_correlation_time": 0.1},
+        "ou_0.5s": {"exploration": "ou", "noise_correlation_time": 0.5},
+        "hold_0.08s": {"hold_time": 0.08},
+        "parameter_episode": {"exploration": "parameter"},
+    },
 }
+# What a task's standard runs hold beside the scheme: the inverted pendulum's episodes that end
+# are restarted in their remaining slots (every slot an environment step, as for PPO and SAC)
+STANDARD_BASE = {"inverted-pendulum": {"episode_end": "restart"}}
+
+
+def standard_overrides(task: str, scheme: str) -> dict:
+    """The overrides of a standard task's run under `scheme` (over the method's tuned settings)."""
+    return {**SCHEME_BASE, **STANDARD_BASE.get(task, {}), **STANDARD_SCHEMES[task][scheme]}
 
 
 log = study.log
@@ -566,8 +600,7 @@ def standard_tune(task: str, out: str, only=None) -> dict:
                 continue
             run = study.run_method(task, method, TUNING_SEEDS,
                                    os.path.join(base, "tuning", method, name),
-                                   {**SCHEME_BASE, **STANDARD_SCHEMES[task][name]},
-                                   dtype=STANDARD_DTYPE)
+                                   standard_overrides(task, name), dtype=STANDARD_DTYPE)
             tried.append(dict(scheme=name, **study.final_return(run.records)))
             log(f"[standard-tune {task}] {method}/{name}: {tried[-1]['score']:.1f}")
         rec["methods"][method] = dict(tried=tried, chosen=max(tried, key=study.by_score)["scheme"])
@@ -593,7 +626,7 @@ def standard(task: str, out: str, only=None) -> dict:
             f"{row['seeds_reaching_threshold']} seeds reach the threshold")
         return {"wall_s": wall, "summary": row}
 
-    parts = {f"{m}/{name}": {**SCHEME_BASE, **STANDARD_SCHEMES[task][name]}
+    parts = {f"{m}/{name}": standard_overrides(task, name)
              for m in only or METHODS for name in _schemes_of(m, STANDARD_SCHEMES[task])}
     meta = study.run_parts(path, {"task": task, "seeds": list(STANDARD_SEEDS)}, parts, run,
                            log=lambda m: log(f"[standard {task}] {m}"))

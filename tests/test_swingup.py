@@ -157,3 +157,44 @@ def test_the_exploration_studys_retune_runs_its_choice_only_where_it_differs(tmp
     study.write_json(f"{out}/retune.json", {**result, "chosen": tuned})
     es.heldout(out, ["gp_critic"])
     assert set(runs) == {f"gp_critic/{s}" for s in es.ABLATION["gp_critic"]}
+
+
+def test_the_exploration_studys_standard_tune_runs_each_scheme_over_the_tasks_own_base(
+        tmp_path, monkeypatch):
+    """`standard-tune` runs a method under each scheme of `STANDARD_SCHEMES[task]` it can take, on
+    the tuning seeds, with every exploration field set and, on the inverted pendulum only, its
+    episodes restarted; it chooses the best mean final return and runs no scheme twice."""
+    import importlib.util
+    import os
+    from types import SimpleNamespace
+
+    from gpguided_jax import study
+
+    root = os.path.dirname(os.path.dirname(__file__))
+    spec = importlib.util.spec_from_file_location(
+        "exploration_study", os.path.join(root, "experiments", "exploration_study.py"))
+    es = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(es)
+    score = {"white": -3.0, "ou_0.1s": 1.0, "ou_0.5s": 2.0, "hold_0.08s": 0.0}
+    calls = []
+
+    def fake_run_method(task, method, seeds, run_dir, overrides, *, dtype):
+        calls.append((task, os.path.basename(run_dir), overrides))
+        assert method == "gp_critic" and list(seeds) == [100, 101] and dtype == "float64"
+        return SimpleNamespace(records=os.path.basename(run_dir))
+
+    monkeypatch.setattr(study, "run_method", fake_run_method)
+    monkeypatch.setattr(study, "final_return", lambda scheme: {"score": score[scheme]})
+    for task, end in (("inverted-pendulum", "restart"), ("inverted-double-pendulum", None)):
+        calls.clear()
+        rec = es.standard_tune(task, str(tmp_path), ["gp_critic"])
+        assert [c[1] for c in calls] == list(score)  # parameter noise: not gp_critic's
+        for _, name, overrides in calls:
+            assert overrides.get("episode_end") == end
+            assert overrides["exploration"] == es.STANDARD_SCHEMES[task][name].get(
+                "exploration", "white")
+            assert overrides["hold_time"] == es.STANDARD_SCHEMES[task][name].get("hold_time", 0.0)
+        assert rec["methods"]["gp_critic"]["chosen"] == "ou_0.5s"
+        calls.clear()
+        es.standard_tune(task, str(tmp_path), ["gp_critic"])
+        assert calls == []
