@@ -246,9 +246,11 @@ STANDARD_SCHEMES = {
         "parameter_episode": {"exploration": "parameter"},
     },
 }
-# What a task's standard runs hold beside the scheme: the inverted pendulum's episodes that end
-# are restarted in their remaining slots (every slot an environment step, as for PPO and SAC)
-STANDARD_BASE = {"inverted-pendulum": {"episode_end": "restart"}}
+# What a task's standard runs hold beside the scheme: on brax's pendulums an episode that ends is
+# restarted in its remaining slots, so that every slot is an environment step (as for PPO and
+# SAC; a masked episode that falls early spends the rest of its length of budget unused)
+STANDARD_BASE = {"inverted-pendulum": {"episode_end": "restart"},
+                 "inverted-double-pendulum": {"episode_end": "restart"}}
 
 
 def standard_overrides(task: str, scheme: str) -> dict:
