@@ -590,10 +590,12 @@ def standard_tune(task: str, out: str, only=None) -> dict:
     """The scheme each method would choose on the tuning seeds: each scheme of
     `STANDARD_SCHEMES[task]` it can take at its tuned settings, on `TUNING_SEEDS`; score: the mean
     final return of the deterministic policy. Writes <out>/<task>/standard_tuning.json (a scheme
-    tried there is not run again)."""
+    tried there is not run again; each method's entry is written into the record as it is then,
+    so that processes tuning other methods of the task at the same time keep theirs)."""
     base = os.path.join(out, task)
     path = os.path.join(base, "standard_tuning.json")
-    rec = study.read_json(path, {"task": task, "seeds": list(TUNING_SEEDS), "methods": {}})
+    header = {"task": task, "seeds": list(TUNING_SEEDS)}
+    rec = study.read_json(path, {**header, "methods": {}})
     for method in only or METHODS:
         tried = rec["methods"].get(method, {}).get("tried", [])
         done = {t["scheme"] for t in tried}
@@ -605,8 +607,8 @@ def standard_tune(task: str, out: str, only=None) -> dict:
                                    standard_overrides(task, name), dtype=STANDARD_DTYPE)
             tried.append(dict(scheme=name, **study.final_return(run.records)))
             log(f"[standard-tune {task}] {method}/{name}: {tried[-1]['score']:.1f}")
-        rec["methods"][method] = dict(tried=tried, chosen=max(tried, key=study.by_score)["scheme"])
-        study.write_json(path, rec)
+        rec = study.record_result(path, header, method, dict(
+            tried=tried, chosen=max(tried, key=study.by_score)["scheme"]))
     return rec
 
 

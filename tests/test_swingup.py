@@ -163,8 +163,8 @@ def test_the_exploration_studys_standard_tune_runs_each_scheme_over_the_tasks_ow
         tmp_path, monkeypatch):
     """`standard-tune` runs a method under each scheme of `STANDARD_SCHEMES[task]` it can take, on
     the tuning seeds, with every exploration field set and, on brax's pendulums, its episodes
-    restarted (Pendulum-v1's never end early); it chooses the best mean final return and runs no
-    scheme twice."""
+    restarted (Pendulum-v1's never end early); it chooses the best mean final return, runs no
+    scheme twice and keeps what another process recorded for the task meanwhile."""
     import importlib.util
     import os
     from types import SimpleNamespace
@@ -183,6 +183,9 @@ def test_the_exploration_studys_standard_tune_runs_each_scheme_over_the_tasks_ow
     calls = []
 
     def fake_run_method(task, method, seeds, run_dir, overrides, *, dtype):
+        if not calls:  # another process records a method of the task meanwhile
+            study.record_result(os.path.join(str(tmp_path), task, "standard_tuning.json"),
+                                {}, "reinforce", {"chosen": "white"})
         calls.append((task, os.path.basename(run_dir), overrides))
         assert method == "gp_critic" and list(seeds) == [100, 101] and dtype == "float64"
         return SimpleNamespace(records=os.path.basename(run_dir))
@@ -201,6 +204,7 @@ def test_the_exploration_studys_standard_tune_runs_each_scheme_over_the_tasks_ow
                 "exploration", "white")
             assert overrides["hold_time"] == es.STANDARD_SCHEMES[task][name].get("hold_time", 0.0)
         assert rec["methods"]["gp_critic"]["chosen"] == max(score, key=score.get)
+        assert rec["methods"]["reinforce"] == {"chosen": "white"}
         calls.clear()
         es.standard_tune(task, str(tmp_path), ["gp_critic"])
         assert calls == []
