@@ -638,15 +638,31 @@ def exploration_standard_table(task: str) -> str:
                      f"{r['seeds_reaching_threshold']}/{n} | "
                      f"{'–' if math.isnan(steps) else f'{steps:,.0f}'} | {run['wall_s']:.0f} s |")
     lines.append("")
-    lines.append(f"Held-out seeds {d['seeds'][0]}–{d['seeds'][-1]}; each method with its tuned "
-                 "settings for the task (`config.METHOD_PRESETS`) and the exploration named. "
+    lines.append(f"Held-out seeds {d['seeds'][0]}–{d['seeds'][-1]}; each method with the "
+                 "settings tuned for the task with white noise (`experiments/standard_tasks.py "
+                 "tune`) and the exploration named. "
                  "Final return: the deterministic policy, last 10% of evaluations per seed; steps "
                  "to threshold: the median over the seeds that reach it, the GP methods' "
                  "hyperparameter-fit episodes included. Wall time: all seeds, compilation "
                  "included, on a 2-core CPU at times shared with other runs. Chosen on the "
                  f"tuning seeds: the scheme with the highest mean final return on seeds "
                  f"{tuning['seeds'][0]}–{tuning['seeds'][-1]} at the same settings. "
+                 + ("An episode that ends is restarted in its remaining slots "
+                    "(`episode_end='restart'`), so that every slot is an environment step. "
+                    if any(r["overrides"].get("episode_end") == "restart"
+                           for r in d["runs"].values()) else "")
                  + _source(path, tuning_path))
+    schemes = list(dict.fromkeys(t["scheme"] for r in tuning["methods"].values()
+                                 for t in r["tried"]))
+    lines += ["", "| method | " + " | ".join(schemes) + " | chosen |",
+              "|---|" + "---|" * (len(schemes) + 1)]
+    for method, r in tuning["methods"].items():
+        score = {t["scheme"]: t["score"] for t in r["tried"]}
+        lines.append(f"| {method} | " + " | ".join(
+            f"{score[k]:.1f}" if k in score else "–" for k in schemes) + f" | {r['chosen']} |")
+    lines += ["", f"The tuning: the mean final return of the deterministic policy on seeds "
+                  f"{tuning['seeds'][0]}–{tuning['seeds'][-1]} under each scheme a method can "
+                  "take (– where it cannot), at the same settings."]
     if d.get("guidance"):
         lines += ["", "| exploration | P(guided_variance > gp_pg), final return | 95% CI |",
                   "|---|---|---|"]
@@ -764,6 +780,9 @@ TABLES = {
     "exploration": exploration_table,
     "exploration_mountaincar": lambda: exploration_standard_table("mountaincar-continuous"),
     "exploration_pendulum_v1": lambda: exploration_standard_table("pendulum-v1"),
+    "exploration_inverted_pendulum": lambda: exploration_standard_table("inverted-pendulum"),
+    "exploration_inverted_double_pendulum":
+        lambda: exploration_standard_table("inverted-double-pendulum"),
     **{f"standard_{t.replace('-', '_')}": (lambda t=t: standard_table(t)) for t in STANDARD_TASKS},
     **{f"standard_targets_{t.replace('-', '_')}": (lambda t=t: standard_targets_table(t))
        for t in ("pendulum-v1", "mountaincar-continuous")},

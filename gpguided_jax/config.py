@@ -624,14 +624,16 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
                      "min_std": 0.05, "eval_episodes": 10, "model_horizon": 6.0,
                      "num_updates": 11, "model_exploration": "thompson"},
     },
-    # experiments/standard_tasks.py tune (seeds 100-101; docs/standard_tasks.md); the horizon in
-    # seconds
+    # experiments/standard_tasks.py tune (seeds 100-101; docs/standard_tasks.md), the horizon in
+    # seconds; then the exploration each method chose at those settings on the same seeds
+    # (experiments/exploration_study.py standard-tune; docs/exploration.md), white where none is
+    # named
     "pendulum-v1": {
         "reinforce": {"learning_rate": 0.03, "discount_horizon": 0.5},
-        "gp_pg": {"learning_rate": 0.003, "init_log_std": math.log(2.0)},
+        "gp_pg": {"learning_rate": 0.003, "init_log_std": math.log(2.0), "hold_time": 0.2},
         "guided_variance": {"learning_rate": 0.01},
         "guided_direction": {"learning_rate": 0.03, "discount_horizon": 0.5, "candidate_scale": 1.0},
-        "gp_critic": {"critic_learning_rate": 0.03},
+        "gp_critic": {"critic_learning_rate": 0.03, "hold_time": 0.2},
         # experiments/model_study.py: its budget (2,000 steps, one episode an update), base
         # settings and tuned ones (docs/model_based.md)
         "gp_model": {"episodes_per_update": 1, "num_updates": 11, "init_log_std": 0.0,
@@ -640,38 +642,52 @@ METHOD_PRESETS: dict[str, dict[str, dict]] = {
                      "model_inducing": 400},
     },
     "mountaincar-continuous": {  # the horizon in steps (the car's step counts as 1 s)
-        "reinforce": {"learning_rate": 0.01, "discount_horizon": 30.0, "init_log_std": 0.0},
-        "gp_pg": {"learning_rate": 0.03, "discount_horizon": 300.0},
-        "guided_variance": {"learning_rate": 0.003, "guided_variance_scale": 0.25},
+        "reinforce": {"learning_rate": 0.01, "discount_horizon": 30.0, "init_log_std": 0.0,
+                      "exploration": "ou", "noise_correlation_time": 100.0},
+        "gp_pg": {"learning_rate": 0.03, "discount_horizon": 300.0, "exploration": "ou",
+                  "noise_correlation_time": 10.0},
+        "guided_variance": {"learning_rate": 0.003, "guided_variance_scale": 0.25,
+                            "hold_time": 10.0},
         "guided_direction": {"learning_rate": 0.01, "discount_horizon": 30.0,
                              "candidate_scale": 0.25, "inverse_temperature": 100.0},
-        "gp_critic": {"critic_learning_rate": 0.01},
+        "gp_critic": {"critic_learning_rate": 0.01, "exploration": "ou",
+                      "noise_correlation_time": 10.0},
         # experiments/model_study.py (docs/model_based.md): 10 episodes, decisions held 5 steps
         "gp_model": {"episodes_per_update": 1, "hold_time": 5.0, "init_log_std": 0.0,
                      "min_std": 0.05, "eval_episodes": 5, "model_horizon": 200.0,
                      "model_end_softness": 1.0, "num_updates": 11,
                      "model_exploration": "thompson"},
     },
+    # brax's pendulums: their exploration was chosen with ended episodes restarted, which their
+    # presets therefore hold too
     "inverted-pendulum": {
         "reinforce": {"learning_rate": 0.01, "discount_horizon": 2.0,
-                      "init_log_std": math.log(0.25)},
-        "gp_pg": {"learning_rate": 0.01},
-        "guided_variance": {"learning_rate": 0.003, "guided_variance_scale": 2.0},
+                      "init_log_std": math.log(0.25), "episode_end": "restart",
+                      "hold_time": 0.08},
+        "gp_pg": {"learning_rate": 0.01, "episode_end": "restart", "exploration": "ou",
+                  "noise_correlation_time": 0.1},
+        "guided_variance": {"learning_rate": 0.003, "guided_variance_scale": 2.0,
+                            "episode_end": "restart", "hold_time": 0.08},
         "guided_direction": {"learning_rate": 0.01, "discount_horizon": 2.0,
-                             "inverse_temperature": 1.0},
-        "gp_critic": {"critic_learning_rate": 0.003, "critic_steps": 10},
+                             "inverse_temperature": 1.0, "episode_end": "restart"},
+        "gp_critic": {"critic_learning_rate": 0.003, "critic_steps": 10, "episode_end": "restart",
+                      "hold_time": 0.08},
         # experiments/model_study.py (docs/model_based.md): restarted episodes, 6,000 steps
         "gp_model": {"episodes_per_update": 1, "num_updates": 7, "episode_end": "restart",
                      "init_log_std": math.log(0.5), "min_std": 0.05, "eval_episodes": 5,
                      "model_capacity": 3000, "model_horizon": 4.0, "model_exploration": "sample"},
     },
     "inverted-double-pendulum": {
-        "reinforce": {"learning_rate": 0.01, "init_log_std": math.log(0.25)},
+        "reinforce": {"learning_rate": 0.01, "init_log_std": math.log(0.25),
+                      "episode_end": "restart", "exploration": "ou",
+                      "noise_correlation_time": 0.1},
         "gp_pg": {"learning_rate": 0.01},
         "guided_variance": {"learning_rate": 0.003, "discount_horizon": 2.0,
-                            "guided_variance_scale": 0.25},
-        "guided_direction": {"learning_rate": 0.01, "discount_horizon": 0.5},
-        "gp_critic": {"critic_learning_rate": 0.003},
+                            "guided_variance_scale": 0.25, "episode_end": "restart",
+                            "hold_time": 0.08},
+        "guided_direction": {"learning_rate": 0.01, "discount_horizon": 0.5,
+                             "episode_end": "restart"},
+        "gp_critic": {"critic_learning_rate": 0.003, "episode_end": "restart"},
         # experiments/model_study.py (docs/model_based.md): 6,000 steps
         "gp_model": {"episodes_per_update": 1, "num_updates": 7, "episode_end": "restart",
                      "init_log_std": math.log(0.5), "min_std": 0.05, "eval_episodes": 5,

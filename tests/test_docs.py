@@ -90,6 +90,33 @@ def test_fig5_numbers_equal_the_summary_file_independently(path):
             assert shown == round(float(summary[method][key]), digits), (method, key, shown)
 
 
+@pytest.mark.parametrize("task", ["pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
+                                  "inverted-double-pendulum"])
+def test_the_exploration_schemes_tuning_scores_equal_the_record_independently(task):
+    """Parse the standard task's tuning table on the exploration page back into numbers and
+    compare them with the record: every method and scheme tried, '–' where it was not, and the
+    choice the best of the method's scores."""
+    import json
+
+    block = f"exploration_{task.replace('-', '_').replace('mountaincar_continuous', 'mountaincar')}"
+    body = docs_tables.blocks(_read(os.path.join(ROOT, "docs", "exploration.md")))[block]
+    with open(os.path.join(ROOT, "docs", "results", "exploration", task,
+                           "standard_tuning.json")) as f:
+        record = json.load(f)["methods"]
+    lines = body.split("\n| method | white |", 1)[1].split("\n\n", 1)[0].splitlines()
+    schemes = ["white"] + [c.strip() for c in lines[0].split("|")[:-2]]
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
+            for line in lines[2:]}
+    assert set(rows) == set(record)
+    for method, cells in rows.items():
+        score = {t["scheme"]: t["score"] for t in record[method]["tried"]}
+        assert len(cells) == len(schemes) + 1
+        for scheme, cell in zip(schemes, cells):
+            assert cell == "–" if scheme not in score else float(cell) == round(score[scheme], 1)
+        best = max(score, key=score.get)
+        assert cells[-1] == record[method]["chosen"] == best, (method, cells[-1], best)
+
+
 def _quick_start():
     text = _read(README)
     section = text.split("## Quick start", 1)[1]

@@ -99,30 +99,48 @@ def test_heldout_skips_a_name_done_with_the_same_seeds_and_settings(tmp_path, mo
 
 def test_the_presets_hold_the_settings_the_tuning_chose():
     """`config.METHOD_PRESETS[task][method]` is each tuning record's choice on every standard task
-    (its horizon as `discount_horizon`), and nothing besides, so that `gpguided reproduce --preset
-    <task>` runs the methods as the study tuned them."""
+    (its horizon as `discount_horizon`) and the fields of the exploration scheme the method chose
+    at those settings (the exploration study's `standard-tune` record, where it has one), and
+    nothing besides, so that `gpguided reproduce --preset <task>` runs the methods as the studies
+    tuned them."""
     import json
 
     from gpguided_jax import config as C
 
     script = _script()
+    spec = importlib.util.spec_from_file_location(
+        "exploration_study", os.path.join(ROOT, "experiments", "exploration_study.py"))
+    es = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(es)
     results = os.path.join(ROOT, "docs", "results", "standard")
     tasks = sorted(os.listdir(results))
     assert tasks == ["inverted-double-pendulum", "inverted-pendulum", "mountaincar-continuous",
                      "pendulum-v1"]
-    checked = 0
+    checked, schemes = 0, 0
     for task in tasks:
+        path = os.path.join(ROOT, "docs", "results", "exploration", task, "standard_tuning.json")
+        with open(path) as f:
+            exploration = json.load(f)["methods"]
         for method in script.METHODS:
             path = os.path.join(results, task, "tuning", f"{method}.json")
             with open(path) as f:
                 chosen = json.load(f)["chosen"]
             expected = {("discount_horizon" if k == "horizon" else k): v for k, v in chosen.items()}
+            if method in exploration:
+                expected.update({**es.STANDARD_BASE.get(task, {}),
+                                 **es.STANDARD_SCHEMES[task][exploration[method]["chosen"]]})
+                schemes += expected != {
+                    ("discount_horizon" if k == "horizon" else k): v for k, v in chosen.items()}
             preset = C.METHOD_PRESETS[task].get(method, {})
             assert set(preset) == set(expected), (task, method, preset, expected)
             for k, v in expected.items():
-                assert math.isclose(preset[k], v, rel_tol=1e-12), (task, method, k)
+                if isinstance(v, str):
+                    assert preset[k] == v, (task, method, k)
+                else:
+                    assert math.isclose(preset[k], v, rel_tol=1e-12), (task, method, k)
             checked += 1
     assert checked == len(tasks) * len(script.METHODS)
+    assert schemes >= 6  # the schemes chosen on Pendulum-v1 and the car beside white
 
 
 def test_retune_searches_the_critics_own_settings_from_its_tuned_ones(tmp_path, monkeypatch):
