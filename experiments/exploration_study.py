@@ -227,24 +227,17 @@ STANDARD_SCHEMES = {
         "hold_10s": {"hold_time": 10.0},
         "parameter_episode": {"exploration": "parameter"},
     },
-    # brax's pendulums (steps of 0.04 s and 0.02 s): a pole left alone falls in about half a
-    # second (its time constant, (l/g)^1/2 for its 0.6 m, is a quarter of one), so OU noise of a
-    # fifth and of the whole fall, actions held for 0.08 s (2 and 4 steps), and the controller's
-    # weights perturbed once per episode
-    "inverted-pendulum": {
-        "white": {},
-        "ou_0.1s": {"exploration": "ou", "noise_correlation_time": 0.1},
-        "ou_0.5s": {"exploration": "ou", "noise_correlation_time": 0.5},
-        "hold_0.08s": {"hold_time": 0.08},
-        "parameter_episode": {"exploration": "parameter"},
-    },
-    "inverted-double-pendulum": {
-        "white": {},
-        "ou_0.1s": {"exploration": "ou", "noise_correlation_time": 0.1},
-        "ou_0.5s": {"exploration": "ou", "noise_correlation_time": 0.5},
-        "hold_0.08s": {"hold_time": 0.08},
-        "parameter_episode": {"exploration": "parameter"},
-    },
+}
+# brax's pendulums (steps of 0.04 s and 0.02 s): a pole left alone falls in about half a second
+# (its time constant, (l/g)^1/2 for its 0.6 m, is a quarter of one), so OU noise of a fifth and of
+# the whole fall, actions held for 0.08 s (2 and 4 steps), and the controller's weights perturbed
+# once per episode
+STANDARD_SCHEMES["inverted-pendulum"] = STANDARD_SCHEMES["inverted-double-pendulum"] = {
+    "white": {},
+    "ou_0.1s": {"exploration": "ou", "noise_correlation_time": 0.1},
+    "ou_0.5s": {"exploration": "ou", "noise_correlation_time": 0.5},
+    "hold_0.08s": {"hold_time": 0.08},
+    "parameter_episode": {"exploration": "parameter"},
 }
 # What a task's standard runs hold beside the scheme: on brax's pendulums an episode that ends is
 # restarted in its remaining slots, so that every slot is an environment step (as for PPO and
