@@ -26,7 +26,6 @@ import json
 import math
 import os
 import re
-import statistics
 import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -676,21 +675,25 @@ PAPER_METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction")
 
 
 def _chosen_run(runs: dict, chosen: dict, method: str):
-    """(method, scheme, IQM, CI low, CI high, seeds reaching, steps median or None, wall time) of
-    `method`'s run under its chosen scheme in an exploration study's standard record, or None."""
+    """(method, scheme, IQM, CI low, CI high, seeds reaching, per-seed steps to the threshold,
+    wall time) of `method`'s run under its chosen scheme in an exploration study's standard
+    record, or None."""
     run = runs["runs"].get(f"{method}/{chosen.get(method)}")
     if run is None:
         return None
     r = run["summary"]
-    steps = float(r["steps_to_threshold_median"])
     return (method, chosen[method], float(r["final_return_iqm"]), float(r["return_ci95_low"]),
             float(r["return_ci95_high"]), int(r["seeds_reaching_threshold"]),
-            None if math.isnan(steps) else steps, run["wall_s"])
+            run["steps_to_threshold"], run["wall_s"])
 
 
 def _explored_row(task, n, method, scheme, iqm, lo, hi, reaching, steps, wall) -> str:
+    from gpguided_jax import study  # the bootstrap interval of a median with "never" in it
+
+    med, slo, shi = study.median_ci([math.inf if s is None else s for s in steps])
+    fmt = lambda v: "∞" if not math.isfinite(v) else f"{v / 1000:.1f}k"  # noqa: E731
     return (f"| {task} | {method} | {scheme} | {iqm:.1f} [{lo:.1f}, {hi:.1f}] | {reaching}/{n} | "
-            f"{'–' if steps is None else f'{steps:,.0f}'} | {wall:.0f} s |")
+            f"{fmt(med)} [{fmt(slo)}, {fmt(shi)}] | {wall:.0f} s |")
 
 
 def explored_critic_table() -> str:
@@ -699,7 +702,7 @@ def explored_critic_table() -> str:
     run there), and brax's SAC and PPO (`experiments/exploration_study.py standard-tune` and
     `standard`; `experiments/standard_tasks.py heldout`)."""
     lines = ["| task | method | exploration | final return, IQM [95% CI] | seeds reaching the "
-             "threshold | steps to it, median over those seeds | wall time |",
+             "threshold | steps to it, median [95% CI] | wall time |",
              "|---|---|---|---|---|---|---|"]
     paths = []
     for task in ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
@@ -722,17 +725,18 @@ def explored_critic_table() -> str:
                 lines.append(_explored_row(task, n, *r))
         for name in BASELINES:
             b = baselines[name]
-            reached = [s for s in b["steps_to_threshold"] if s is not None]
             lines.append(_explored_row(
                 task, n, name, "its own", b["final_return_iqm"], b["ci95_low"], b["ci95_high"],
-                len(reached), float(statistics.median(reached)) if reached else None,
+                sum(s is not None for s in b["steps_to_threshold"]), b["steps_to_threshold"],
                 b["wall_s"]))
     lines += ["", "Held-out seeds 1000–1009. gp_critic and each method of the paper: the settings "
                   "tuned with white noise and the exploration the method chose on the tuning seeds "
                   "at those settings; the paper's row is the one of its methods run under its own "
                   "choice that ends highest here (on brax's pendulums gp_pg, the only one run "
                   "there). Final return: the deterministic policy, last 10% of evaluations per "
-                  "seed; steps: the GP methods' hyperparameter-fit episodes included. sac and ppo: "
+                  "seed; steps to the threshold: the median over all seeds with a bootstrap "
+                  "interval (∞ where more than half never get there), the GP methods' "
+                  "hyperparameter-fit episodes included. sac and ppo: "
                   "brax's, as tuned on the standard tasks. Wall time: all seeds, compilation "
                   "included, on a 2-core CPU at times shared with other runs. "
                   + _source(*paths)]

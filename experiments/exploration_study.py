@@ -78,7 +78,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import swingup_study as S  # noqa: E402
 
 import gpguided_jax  # noqa: E402
-from gpguided_jax import checkpoints, runtime, study, tasks  # noqa: E402
+from gpguided_jax import checkpoints, runtime, study, summaries, tasks  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
 from gpguided_jax import stats as stats_lib  # noqa: E402
 from gpguided_jax import train as train_lib  # noqa: E402
@@ -605,11 +605,16 @@ def standard_tune(task: str, out: str, only=None) -> dict:
     return rec
 
 
+def _never_as_none(steps: np.ndarray) -> list:
+    return [None if np.isnan(s) else float(s) for s in steps]
+
+
 def standard(task: str, out: str, only=None) -> dict:
     """Each method at its tuned settings for `task` under each of `STANDARD_SCHEMES[task]`, one
     `gpguided_jax.reproduce` run per (method, scheme) under <out>/<task>/; writes
-    <out>/<task>/standard.json with each run's summary row (a run recorded there with the same
-    settings is not run again)."""
+    <out>/<task>/standard.json with each run's summary row and, where its curves are on this
+    machine (or no seed reaches the threshold), the steps at which each seed first reaches it
+    (null: never; a run recorded there with the same settings is not run again)."""
     base = os.path.join(out, task)
     path = os.path.join(base, "standard.json")
 
@@ -631,11 +636,17 @@ def standard(task: str, out: str, only=None) -> dict:
     # run directories' curves are not kept in the repository: a scheme whose two runs' curves are
     # not on this machine keeps its earlier entry)
     finals = {}
-    for key in meta["runs"]:
+    for key, rec in meta["runs"].items():
         results = os.path.join(base, key, "results.npz")
         if os.path.exists(results):
             with np.load(results) as f:
                 finals[key] = study.final(f["eval_return"][0])
+                cfg = config_lib.preset(task, method=key.split("/")[0], dtype=STANDARD_DTYPE,
+                                        **rec["overrides"])
+                rec["steps_to_threshold"] = _never_as_none(summaries.steps_to_threshold(
+                    f["eval_return"][0], summaries.task_budget(cfg)))
+        elif int(rec["summary"]["seeds_reaching_threshold"]) == 0:
+            rec["steps_to_threshold"] = [None] * len(STANDARD_SEEDS)
     earlier = {g["scheme"]: g for g in meta.get("guidance", [])}
     meta["guidance"] = []
     for name in STANDARD_SCHEMES[task]:

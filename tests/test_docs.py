@@ -117,6 +117,62 @@ def test_the_exploration_schemes_tuning_scores_equal_the_record_independently(ta
         assert cells[-1] == record[method]["chosen"] == best, (method, cells[-1], best)
 
 
+def test_the_explored_critic_rows_equal_the_records_independently():
+    """Each task's gp_critic row in the standard tasks' exploration table is its run under the
+    scheme its tuning record chose, with that run's summary at the precision shown; the paper's
+    row is the highest final return of its methods' chosen runs; SAC's seeds count those with a
+    step to the threshold."""
+    import json
+
+    body = docs_tables.blocks(_read(os.path.join(ROOT, "docs", "standard_tasks.md")))[
+        "standard_critic_explored"]
+    rows = [[c.strip() for c in line.split("|")[1:-1]] for line in body.splitlines()
+            if line.startswith("| ") and not line.startswith("| task")]
+    tasks = sorted({r[0] for r in rows})
+    assert tasks == ["inverted-double-pendulum", "inverted-pendulum", "mountaincar-continuous",
+                     "pendulum-v1"]
+    for task in tasks:
+        base = os.path.join(ROOT, "docs", "results")
+        with open(os.path.join(base, "exploration", task, "standard.json")) as f:
+            runs = json.load(f)["runs"]
+        with open(os.path.join(base, "exploration", task, "standard_tuning.json")) as f:
+            chosen = {m: r["chosen"] for m, r in json.load(f)["methods"].items()}
+        with open(os.path.join(base, "standard", task, "heldout_table.json")) as f:
+            sac = next(r for r in json.load(f)["rows"] if r["method"] == "sac")
+        mine = {r[1]: r for r in rows if r[0] == task}
+        assert mine["gp_critic"][2] == chosen["gp_critic"]
+        summary = runs[f"gp_critic/{chosen['gp_critic']}"]["summary"]
+        iqm = float(mine["gp_critic"][3].split(" [")[0])
+        assert iqm == round(float(summary["final_return_iqm"]), 1)
+        assert mine["gp_critic"][4] == f"{summary['seeds_reaching_threshold']}/10"
+        paper = {m: float(runs[f"{m}/{c}"]["summary"]["final_return_iqm"])
+                 for m, c in chosen.items() if m != "gp_critic" and f"{m}/{c}" in runs}
+        (best,) = set(mine) - {"gp_critic", "ppo", "sac"}
+        assert best == max(paper, key=paper.get) and mine[best][2] == chosen[best]
+        reached = sum(s is not None for s in sac["steps_to_threshold"])
+        assert mine["sac"][4] == f"{reached}/10"
+
+
+@pytest.mark.parametrize("task", ["pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
+                                  "inverted-double-pendulum"])
+def test_the_exploration_runs_steps_per_seed_agree_with_their_summaries(task):
+    """The steps per seed that the exploration study's standard stage records (from the curves)
+    agree with the run's own summary (written by `reproduce`): as many seeds reach the threshold,
+    with the same median over them."""
+    import json
+    import statistics
+
+    with open(os.path.join(ROOT, "docs", "results", "exploration", task, "standard.json")) as f:
+        runs = json.load(f)["runs"]
+    for key, run in runs.items():
+        reached = [s for s in run["steps_to_threshold"] if s is not None]
+        assert len(run["steps_to_threshold"]) == 10
+        assert len(reached) == int(run["summary"]["seeds_reaching_threshold"]), key
+        if reached:
+            assert statistics.median(reached) == pytest.approx(
+                float(run["summary"]["steps_to_threshold_median"]), rel=1e-12), key
+
+
 def _quick_start():
     text = _read(README)
     section = text.split("## Quick start", 1)[1]

@@ -208,3 +208,48 @@ def test_the_exploration_studys_standard_tune_runs_each_scheme_over_the_tasks_ow
         calls.clear()
         es.standard_tune(task, str(tmp_path), ["gp_critic"])
         assert calls == []
+
+
+def test_the_exploration_studys_standard_stage_records_each_seeds_steps_to_the_threshold(
+        tmp_path, monkeypatch):
+    """`standard` records, per run whose curves are on this machine, the environment steps (the
+    hyperparameter fit's included) at which each seed's deterministic return first reaches the
+    task's threshold, null where it never does; without curves, all null where the summary says
+    no seed reaches it, and nothing where some do."""
+    import importlib.util
+    import os
+
+    import numpy as np
+
+    from gpguided_jax import config as C
+    from gpguided_jax import study
+
+    root = os.path.dirname(os.path.dirname(__file__))
+    spec = importlib.util.spec_from_file_location(
+        "exploration_study", os.path.join(root, "experiments", "exploration_study.py"))
+    es = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(es)
+    task, out = "mountaincar-continuous", str(tmp_path)
+    cfg = C.preset(task, method="gp_critic")
+    n = len(es.STANDARD_SEEDS)
+    curves = np.zeros((1, n, cfg.num_updates))
+    curves[0, 0, 3:] = 95.0  # the car's threshold is 90
+    curves[0, 1, 7] = 90.0
+    os.makedirs(f"{out}/{task}/gp_critic/white")
+    np.savez(f"{out}/{task}/gp_critic/white/results.npz", eval_return=curves)
+    summary = {"seeds_reaching_threshold": "0"}
+    runs = {"gp_critic/white": {"overrides": es.standard_overrides(task, "white"),
+                                "summary": {"seeds_reaching_threshold": "2"}},
+            "gp_critic/ou_10s": {"overrides": es.standard_overrides(task, "ou_10s"),
+                                 "summary": summary},
+            "gp_critic/hold_10s": {"overrides": es.standard_overrides(task, "hold_10s"),
+                                   "summary": {"seeds_reaching_threshold": "1"}}}
+    monkeypatch.setattr(study, "run_parts", lambda *a, **k: {"seeds": list(es.STANDARD_SEEDS),
+                                                            "runs": runs})
+    meta = es.standard(task, out, ["gp_critic"])
+    fit = cfg.hyperfit_episodes * cfg.episode_length
+    per_update = cfg.episodes_per_update * cfg.episode_length
+    assert meta["runs"]["gp_critic/white"]["steps_to_threshold"] == [
+        fit + 3 * per_update, fit + 7 * per_update] + [None] * (n - 2)
+    assert meta["runs"]["gp_critic/ou_10s"]["steps_to_threshold"] == [None] * n
+    assert "steps_to_threshold" not in meta["runs"]["gp_critic/hold_10s"]
