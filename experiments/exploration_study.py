@@ -41,8 +41,9 @@ Stages (each writes under --out, default docs/results/exploration):
 ``standard-tune``  On a standard task (--task, `STANDARD_SCHEMES`): the scheme each method
             would choose at its tuned settings for that task, on the tuning seeds (mean final
             return). Writes <task>/standard_tuning.json.
-``standard``  Each method under each of the task's schemes on held-out seeds 1000-1009. Writes
-            <task>/standard.json (it resumes, as ``heldout``).
+``standard``  Each method under each of the task's schemes (with --chosen, the one its tuning
+            chose) on held-out seeds 1000-1009. Writes <task>/standard.json (it resumes, as
+            ``heldout``).
 
 Usage:
   python experiments/exploration_study.py reach
@@ -609,12 +610,13 @@ def _never_as_none(steps: np.ndarray) -> list:
     return [None if np.isnan(s) else float(s) for s in steps]
 
 
-def standard(task: str, out: str, only=None) -> dict:
+def standard(task: str, out: str, only=None, chosen: bool = False) -> dict:
     """Each method at its tuned settings for `task` under each of `STANDARD_SCHEMES[task]`, one
     `gpguided_jax.reproduce` run per (method, scheme) under <out>/<task>/; writes
     <out>/<task>/standard.json with each run's summary row and, where its curves are on this
     machine (or no seed reaches the threshold), the steps at which each seed first reaches it
-    (null: never; a run recorded there with the same settings is not run again)."""
+    (null: never; a run recorded there with the same settings is not run again). `chosen`: each
+    method under the scheme its `standard-tune` record chose only."""
     base = os.path.join(out, task)
     path = os.path.join(base, "standard.json")
 
@@ -628,8 +630,11 @@ def standard(task: str, out: str, only=None) -> dict:
             f"{row['seeds_reaching_threshold']} seeds reach the threshold")
         return {"wall_s": wall, "summary": row}
 
+    choice = ({m: r["chosen"] for m, r in study.read_json(
+        os.path.join(base, "standard_tuning.json"))["methods"].items()} if chosen else {})
     parts = {f"{m}/{name}": standard_overrides(task, name)
-             for m in only or METHODS for name in _schemes_of(m, STANDARD_SCHEMES[task])}
+             for m in only or METHODS for name in _schemes_of(m, STANDARD_SCHEMES[task])
+             if not chosen or name == choice[m]}
     meta = study.run_parts(path, {"task": task, "seeds": list(STANDARD_SEEDS)}, parts, run,
                            log=lambda m: log(f"[standard {task}] {m}"))
     # the guidance against the same unguided noise: P(guided_variance > gp_pg), final return (the
@@ -669,6 +674,8 @@ def main(argv=None) -> int:
                                       "baselines", "report", "standard-tune", "standard"))
     ap.add_argument("--task", default="mountaincar-continuous", choices=sorted(STANDARD_SCHEMES),
                     help="the standard task of the `standard` stage")
+    ap.add_argument("--chosen", action="store_true",
+                    help="standard: each method under the scheme its tuning chose only")
     ap.add_argument("--out", default="docs/results/exploration")
     ap.add_argument("--only", nargs="+", default=None, choices=(*METHODS, *BASELINES),
                     help="these methods (or, for the baseline stages, baselines) only")
@@ -697,7 +704,7 @@ def main(argv=None) -> int:
         standard_tune(args.task, args.out, args.only)
     elif args.stage == "standard":
         gpguided_jax.enable_x64()
-        standard(args.task, args.out, args.only)
+        standard(args.task, args.out, args.only, args.chosen)
     else:
         print(report(args.out))
     return 0

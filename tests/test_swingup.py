@@ -253,3 +253,36 @@ def test_the_exploration_studys_standard_stage_records_each_seeds_steps_to_the_t
         fit + 3 * per_update, fit + 7 * per_update] + [None] * (n - 2)
     assert meta["runs"]["gp_critic/ou_10s"]["steps_to_threshold"] == [None] * n
     assert "steps_to_threshold" not in meta["runs"]["gp_critic/hold_10s"]
+
+
+def test_the_exploration_studys_standard_stage_can_run_each_methods_choice_only(tmp_path,
+                                                                               monkeypatch):
+    """`standard --chosen` runs each method under the scheme its tuning record chose only, with
+    the task's base; without it, under every scheme the method can take."""
+    import importlib.util
+    import os
+
+    from gpguided_jax import study
+
+    root = os.path.dirname(os.path.dirname(__file__))
+    spec = importlib.util.spec_from_file_location(
+        "exploration_study", os.path.join(root, "experiments", "exploration_study.py"))
+    es = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(es)
+    task, out = "inverted-double-pendulum", str(tmp_path)
+    study.write_json(f"{out}/{task}/standard_tuning.json", {"methods": {
+        "reinforce": {"chosen": "ou_0.1s"}, "guided_direction": {"chosen": "white"}}})
+    seen = {}
+
+    def fake_run_parts(path, header, parts, run, log):
+        seen.update(parts)
+        return {"seeds": header["seeds"], "runs": {}}
+
+    monkeypatch.setattr(study, "run_parts", fake_run_parts)
+    es.standard(task, out, ["reinforce", "guided_direction"], chosen=True)
+    assert seen == {"reinforce/ou_0.1s": es.standard_overrides(task, "ou_0.1s"),
+                    "guided_direction/white": es.standard_overrides(task, "white")}
+    assert seen["reinforce/ou_0.1s"]["episode_end"] == "restart"
+    seen.clear()
+    es.standard(task, out, ["guided_direction"])
+    assert set(seen) == {"guided_direction/white", "guided_direction/hold_0.08s"}
