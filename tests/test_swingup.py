@@ -106,21 +106,27 @@ def test_swingup_preset_uses_the_tuned_settings():
     assert not set(white["seeds"]) & set(range(1000, 1010))
 
 
-def test_the_exploration_studys_retune_runs_its_choice_only_where_it_differs(tmp_path,
-                                                                            monkeypatch):
-    """`retune` scores gp_critic's tuned settings again, then `RETUNE_GRID` over the best so far
-    (by success, then reward); `heldout` adds the part gp_critic/retuned with its choice, and none
-    where the choice is the tuned settings."""
+def _exploration_study():
+    """experiments/exploration_study.py as a module."""
     import importlib.util
     import os
-
-    from gpguided_jax import study
 
     root = os.path.dirname(os.path.dirname(__file__))
     spec = importlib.util.spec_from_file_location(
         "exploration_study", os.path.join(root, "experiments", "exploration_study.py"))
     es = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(es)
+    return es
+
+
+def test_the_exploration_studys_retune_runs_its_choice_only_where_it_differs(tmp_path,
+                                                                            monkeypatch):
+    """`retune` scores gp_critic's tuned settings again, then `RETUNE_GRID` over the best so far
+    (by success, then reward); `heldout` adds the part gp_critic/retuned with its choice, and none
+    where the choice is the tuned settings."""
+    from gpguided_jax import study
+
+    es = _exploration_study()
     out = str(tmp_path)
     tuned = {"scheme": "hold_0.5s", "critic_learning_rate": 0.01}
     study.write_json(f"{out}/tuning.json", {"methods": {"gp_critic": {"chosen": tuned}}})
@@ -165,17 +171,12 @@ def test_the_exploration_studys_standard_tune_runs_each_scheme_over_the_tasks_ow
     the tuning seeds, with every exploration field set and, on brax's pendulums, its episodes
     restarted (Pendulum-v1's never end early); it chooses the best mean final return, runs no
     scheme twice and keeps what another process recorded for the task meanwhile."""
-    import importlib.util
     import os
     from types import SimpleNamespace
 
     from gpguided_jax import study
 
-    root = os.path.dirname(os.path.dirname(__file__))
-    spec = importlib.util.spec_from_file_location(
-        "exploration_study", os.path.join(root, "experiments", "exploration_study.py"))
-    es = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(es)
+    es = _exploration_study()
     scores = {"inverted-pendulum": {"white": -3.0, "ou_0.1s": 1.0, "ou_0.5s": 2.0,
                                     "hold_0.08s": 0.0}}
     scores["inverted-double-pendulum"] = scores["inverted-pendulum"]
@@ -216,7 +217,6 @@ def test_the_exploration_studys_standard_stage_records_each_seeds_steps_to_the_t
     hyperparameter fit's included) at which each seed's deterministic return first reaches the
     task's threshold, null where it never does; without curves, all null where the summary says
     no seed reaches it, and nothing where some do."""
-    import importlib.util
     import os
 
     import numpy as np
@@ -224,11 +224,7 @@ def test_the_exploration_studys_standard_stage_records_each_seeds_steps_to_the_t
     from gpguided_jax import config as C
     from gpguided_jax import study
 
-    root = os.path.dirname(os.path.dirname(__file__))
-    spec = importlib.util.spec_from_file_location(
-        "exploration_study", os.path.join(root, "experiments", "exploration_study.py"))
-    es = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(es)
+    es = _exploration_study()
     task, out = "mountaincar-continuous", str(tmp_path)
     cfg = C.preset(task, method="gp_critic")
     n = len(es.STANDARD_SEEDS)
@@ -259,16 +255,10 @@ def test_the_exploration_studys_standard_stage_can_run_each_methods_choice_only(
                                                                                monkeypatch):
     """`standard --chosen` runs each method under the scheme its tuning record chose only, with
     the task's base; without it, under every scheme the method can take."""
-    import importlib.util
-    import os
 
     from gpguided_jax import study
 
-    root = os.path.dirname(os.path.dirname(__file__))
-    spec = importlib.util.spec_from_file_location(
-        "exploration_study", os.path.join(root, "experiments", "exploration_study.py"))
-    es = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(es)
+    es = _exploration_study()
     task, out = "inverted-double-pendulum", str(tmp_path)
     study.write_json(f"{out}/{task}/standard_tuning.json", {"methods": {
         "reinforce": {"chosen": "ou_0.1s"}, "guided_direction": {"chosen": "white"}}})
