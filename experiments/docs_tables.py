@@ -384,8 +384,8 @@ def standard_critic_table(task: str) -> str:
     return critic_table(os.path.join("standard", task, "critic_diagnostics.json"))
 
 
-RETUNE_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
-                "inverted-double-pendulum")
+STANDARD_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
+                  "inverted-double-pendulum")  # with a comparison
 
 
 def retune_table(path: str) -> str:
@@ -671,9 +671,6 @@ def exploration_standard_table(task: str) -> str:
     return "\n".join(lines)
 
 
-PAPER_METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction")
-
-
 def _chosen_run(runs: dict, chosen: dict, method: str):
     """(method, scheme, IQM, CI low, CI high, seeds reaching, per-seed steps to the threshold,
     wall time) of `method`'s run under its chosen scheme in an exploration study's standard
@@ -701,12 +698,13 @@ def explored_critic_table() -> str:
     the paper's method that ends highest on the held-out seeds under its own choice (among those
     run there), and brax's SAC and PPO (`experiments/exploration_study.py standard-tune` and
     `standard`; `experiments/standard_tasks.py heldout`)."""
+    from gpguided_jax.config import PAPER_METHODS
+
     lines = ["| task | method | exploration | final return, IQM [95% CI] | seeds reaching the "
              "threshold | steps to it, median [95% CI] | wall time |",
              "|---|---|---|---|---|---|---|"]
     paths = []
-    for task in ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
-                 "inverted-double-pendulum"):
+    for task in STANDARD_TASKS:
         runs_path = os.path.join("exploration", task, "standard.json")
         tuning_path = os.path.join("exploration", task, "standard_tuning.json")
         table_path = os.path.join("standard", task, "heldout_table.json")
@@ -735,9 +733,8 @@ def explored_critic_table() -> str:
                   "choice that ends highest here. Final return: the deterministic policy, last "
                   "10% of evaluations per seed; steps to the threshold: the median over all "
                   "seeds with a bootstrap interval (∞ where more than half never get there), the "
-                  "GP methods' "
-                  "hyperparameter-fit episodes included. sac and ppo: "
-                  "brax's, as tuned on the standard tasks. Wall time: all seeds, compilation "
+                  "GP methods' hyperparameter-fit episodes included. sac and ppo: brax's, as "
+                  "tuned on the standard tasks. Wall time: all seeds, compilation "
                   "included, on a 2-core CPU at times shared with other runs. "
                   + _source(*paths)]
     return "\n".join(lines)
@@ -828,8 +825,6 @@ def model_tuning_table(task: str) -> str:
 # with a gp_model study (its tuning record and held-out runs)
 MODEL_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
                "inverted-double-pendulum", "swingup")
-STANDARD_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
-                  "inverted-double-pendulum")  # with a comparison
 
 TABLES = {
     "fig5": fig5_table,
@@ -853,20 +848,20 @@ TABLES = {
     "exploration_mountaincar": lambda: exploration_standard_table("mountaincar-continuous"),
     "exploration_pendulum_v1": lambda: exploration_standard_table("pendulum-v1"),
     "exploration_inverted_pendulum": lambda: exploration_standard_table("inverted-pendulum"),
-    "standard_critic_explored": explored_critic_table,
     "exploration_inverted_double_pendulum":
         lambda: exploration_standard_table("inverted-double-pendulum"),
+    "standard_critic_explored": explored_critic_table,
     **{f"standard_{t.replace('-', '_')}": (lambda t=t: standard_table(t)) for t in STANDARD_TASKS},
     **{f"standard_targets_{t.replace('-', '_')}": (lambda t=t: standard_targets_table(t))
        for t in ("pendulum-v1", "mountaincar-continuous")},
     **{f"standard_retune_{t.replace('-', '_')}": (
-        lambda t=t: retune_table(os.path.join("standard", t, "retune.json"))) for t in RETUNE_TASKS},
+        lambda t=t: retune_table(os.path.join("standard", t, "retune.json")))
+       for t in STANDARD_TASKS},
     "exploration_retune": lambda: retune_table(os.path.join("exploration", "retune.json")),
     "exploration_critic": lambda: critic_table(os.path.join("exploration",
                                                             "critic_diagnostics.json")),
     **{f"standard_critic_{t.replace('-', '_')}": (lambda t=t: standard_critic_table(t))
-       for t in ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
-                 "inverted-double-pendulum")},
+       for t in STANDARD_TASKS},
     **{f"standard_tuning_{t.replace('-', '_')}": (lambda t=t: standard_tuning_table(t))
        for t in STANDARD_TASKS},
     **{f"model_{t.replace('-', '_')}": (lambda t=t: model_table(t)) for t in MODEL_TASKS},

@@ -606,10 +606,6 @@ def standard_tune(task: str, out: str, only=None) -> dict:
     return rec
 
 
-def _never_as_none(steps: np.ndarray) -> list:
-    return [None if np.isnan(s) else float(s) for s in steps]
-
-
 def standard(task: str, out: str, only=None, chosen: bool = False) -> dict:
     """Each method at its tuned settings for `task` under each of `STANDARD_SCHEMES[task]`, one
     `gpguided_jax.reproduce` run per (method, scheme) under <out>/<task>/; writes
@@ -648,8 +644,9 @@ def standard(task: str, out: str, only=None, chosen: bool = False) -> dict:
                 finals[key] = study.final(f["eval_return"][0])
                 cfg = config_lib.preset(task, method=key.split("/")[0], dtype=STANDARD_DTYPE,
                                         **rec["overrides"])
-                rec["steps_to_threshold"] = _never_as_none(summaries.steps_to_threshold(
-                    f["eval_return"][0], summaries.task_budget(cfg)))
+                reach = summaries.steps_to_threshold(f["eval_return"][0],
+                                                     summaries.task_budget(cfg))
+                rec["steps_to_threshold"] = [None if np.isnan(v) else float(v) for v in reach]
         elif int(rec["summary"]["seeds_reaching_threshold"]) == 0:
             rec["steps_to_threshold"] = [None] * len(STANDARD_SEEDS)
     earlier = {g["scheme"]: g for g in meta.get("guidance", [])}
