@@ -224,7 +224,7 @@ def _horizon_steps(task: str) -> int:
     """The tuned simulated roll-outs' steps (decisions of the hold)."""
     cfg = config_lib.preset(task, method=METHOD)
     dt = config_lib.control_interval(cfg)
-    return int(round(cfg.model_horizon / (dt * exploration.hold_steps(cfg.hold_time, dt))))
+    return int(round(cfg.settings.horizon / (dt * exploration.hold_steps(cfg.hold_time, dt))))
 
 
 def _others(task: str, seeds: list) -> dict:

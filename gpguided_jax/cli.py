@@ -398,13 +398,19 @@ def _add_exploration_options(rep) -> None:
 
 def _add_run_options(rep) -> None:
     """reproduce: other config fields, the seeds, the methods and the output."""
+    from gpguided_jax import methods, settings
     from gpguided_jax.config import FIELD_GROUPS, METHODS, PAPER_METHODS
 
+    own = [f"{m}: " + ", ".join(f"{name} ({default})" for name, default, _ in
+                                settings.describe(methods.get(m).settings))
+           for m in METHODS if methods.get(m).settings is not None]
     rep.add_argument("--set", nargs="+", default=None, metavar="FIELD=VALUE",
-                     help="any other TrainConfig field (or discount_horizon, in seconds) for "
-                          "every method, e.g. --set num_updates=100 learning_rate=0.01; applied "
-                          "after the preset and the method's tuned settings. The fields: "
-                          + "; ".join(f"{g}: {', '.join(fs)}" for g, fs in FIELD_GROUPS.items()))
+                     help="any other TrainConfig field (or discount_horizon, in seconds) or "
+                          "method setting, for every method, e.g. --set num_updates=100 "
+                          "learning_rate=0.01; applied after the preset and the method's tuned "
+                          "settings (a method ignores another method's settings). The fields: "
+                          + "; ".join(f"{g}: {', '.join(fs)}" for g, fs in FIELD_GROUPS.items())
+                          + ". Each method's own settings (default): " + "; ".join(own))
     rep.add_argument("--seeds", type=positive_int, default=10, help="number of seeds")
     rep.add_argument("--seed-start", type=non_negative_int, default=REPORTED_SEED_START,
                      help="first seed (the reported results use seeds from 1000 on; the presets "
@@ -479,7 +485,7 @@ def _add_baseline(sub) -> None:
 
 def _add_sweep(sub) -> None:
     from gpguided_jax.config import METHODS, PRESETS
-    from gpguided_jax.sweep import ALIASES, SWEEPABLE_FIELDS
+    from gpguided_jax.sweep import ALIASES, sweepable_fields
 
     sw = sub.add_parser(
         "sweep",
@@ -492,7 +498,7 @@ def _add_sweep(sub) -> None:
         "the last 10% of updates, mean and 95% CI over seeds), config.json and "
         "sweep_<field>.png to --out. Static fields (sizes, method, controller, ...) cannot be "
         "swept this way.",
-        epilog="sweepable fields: " + ", ".join(SWEEPABLE_FIELDS) + "; aliases: "
+        epilog="sweepable fields: " + ", ".join(sweepable_fields()) + "; aliases: "
         + ", ".join(f"{a}={f}" for a, f in ALIASES.items())
         + ". Example: gpguided sweep --param lambda --values 0 10 100 400 1000 --method gp_pg "
         "--preset paper --seeds 5",

@@ -1,10 +1,17 @@
-"""Training configuration: one frozen dataclass, static fields apart from traced ones, and the
-presets (design: docs/design.md#algorithm-1, docs/design.md#presets).
+"""Training configuration: one frozen dataclass of what the training loop shares, static fields
+apart from traced ones, and the presets (design: docs/design.md#algorithm-1,
+docs/design.md#presets).
 
 `TrainConfig` is a pytree: its *traced* fields (learning rate, lambda, beta, sigma_e, physics, ...)
 are leaves, its *static* fields (sizes, lengths, method, controller, ...) are metadata. So
 `jax.vmap(train, in_axes=(0, 0))(keys, stacked_configs)` sweeps any traced field in one compiled
 program, while changing a static field means a new program.
+
+A method with settings of its own declares them next to its code (`methods.Method.settings`, a
+class of `gpguided_jax.settings`); a config of that method holds them as `TrainConfig.settings`,
+whose static and traced fields split the same way. This module names no method: presets,
+`make_config`, `replace` and `--set` take a method's settings by their flat names
+(`settings.declare`), and the tuned settings per preset are each method's own (`Method.presets`).
 
 Build configs with `preset(name, **overrides)` or `make_config(**fields)`: both validate and raise a
 `ValueError` naming the field for anything that makes no sense. (Validation is not in
@@ -22,23 +29,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpguided_jax import exploration, methods, pendulum, tasks
+from gpguided_jax import settings as settings_lib
 
 CONTROLLERS = ("linear", "rbf")
 AGE_FUNCTIONS = ("exp", "logit")
 OPTIMIZERS = ("sgd", "adam")
 DTYPES = ("float64", "float32")
 EPISODE_ENDS = ("mask", "restart")
-# gp_model's choices (`gpguided_jax.model_based`): how the model's uncertainty enters its
-# simulated roll-outs, and the controller's optimiser
-MODEL_EXPLORATIONS = ("mean", "sample", "thompson", "optimistic")
-MODEL_OPTIMIZERS = ("adam", "lbfgs")
-# where gp_model's reward comes from: the task's own statement ('stated'), a GP learnt with the
-# dynamics ('learned'), or the first where the task states one ('auto')
-MODEL_REWARDS = ("auto", "stated", "learned")
-# gp_critic's GP targets: the paper's returns-to-go, or lambda-returns bootstrapped with the GP's
-# own mean (`gpguided_jax.critic`)
-CRITIC_TARGETS = ("returns", "lambda")
-
 STATIC_FIELDS = (
     "method",
     "num_updates",
@@ -66,20 +63,6 @@ STATIC_FIELDS = (
     "hold_time",
     "optimism",
     "episode_end",
-    "critic_steps",
-    "critic_optimism",
-    "critic_targets",
-    "critic_window",
-    "model_capacity",
-    "model_inducing",
-    "model_fit_subset",
-    "model_fit_steps",
-    "model_particles",
-    "model_steps",
-    "model_horizon",
-    "model_exploration",
-    "model_optimizer",
-    "model_reward",
 )
 
 
@@ -88,8 +71,8 @@ class TrainConfig:
     """Everything that defines a training run of Algorithm 1.
 
     Static fields (fix shapes or the program; changing one recompiles):
-      method: 'reinforce' (eq. 4), 'gp_pg' (eq. 9, fixed noise), 'guided_variance' (eq. 16-19 + 9),
-        'guided_direction' (eq. 20-22 + 9).
+      method: the name of a registered method (`methods.names()`; the paper's four are
+        'reinforce', 'gp_pg', 'guided_variance' and 'guided_direction', `methods.paper()`).
       num_updates: gradient updates (policy improvements).
       episodes_per_update: episodes per gradient estimate.
       episode_length: steps per episode (at 200 Hz).
@@ -147,26 +130,7 @@ class TrainConfig:
         single episodes either way.
       optimism: kappa of guided_direction's optimistic score: its candidates are scored by
         Q_GP(s, a_j) + kappa sigma(s, a_j) (sigma the GP's latent standard deviation) instead of
-        Q_GP(s, a_j). 0 (default): the paper. The other methods ignore it.
-      critic_steps: gp_critic's K, the surrogate steps against Q_GP per update (`critic`; 0: gp_pg
-        exactly). The other methods ignore it.
-      critic_optimism: gp_critic's kappa: the surrogate scores a state by E_a Q_GP + kappa (E_a
-        sigma_Q^2)^(1/2), sigma_Q the GP's latent standard deviation (> 0 optimistic, < 0
-        pessimistic; 0, the default: the mean alone). The other methods ignore it.
-      critic_targets: gp_critic's GP targets: 'returns' (default; the paper's returns-to-go) or
-        'lambda' (lambda-returns bootstrapped with the GP's own mean, `critic.bootstrapped_targets`).
-      critic_window: gp_critic's window, in updates: the surrogate and its trust region run over
-        the decision states of the last `critic_window` updates' episodes (1, the default: the
-        update's own). The other methods ignore it.
-      model_capacity, model_inducing, model_fit_subset, model_fit_steps, model_particles,
-        model_steps, model_horizon, model_exploration, model_optimizer: gp_model's transitions
-        kept, inducing inputs, the refit's subset and Adam steps, simulated particles, optimiser
-        steps per update, the simulated roll-outs' horizon (seconds), how the model's uncertainty
-        enters them ('mean', 'sample', 'thompson', 'optimistic') and the controller's optimiser
-        ('adam', 'lbfgs'; `model_based`).
-      model_reward: where gp_model's reward comes from: 'stated' (the task's `reward_fn`),
-        'learned' (one more GP output, the reward of a decision, learnt with the dynamics), or
-        'auto' (default: stated where the task states it, learned otherwise).
+        Q_GP(s, a_j). 0 (default): the paper. A setting of the Gibbs policy (eq. 20-22).
 
     Traced fields (leaves; sweepable by vmap):
       learning_rate: eta of the ascent step.
@@ -191,16 +155,9 @@ class TrainConfig:
       candidate_floor: lower bound on the candidate variance (N m)^2.
       success_tolerance: |phi - pi| bound (rad) of a swing-up success.
       pendulum: `PendulumParams` (physics, reward noise, start-state distribution).
-      critic_learning_rate: gp_critic's Adam step size on the surrogate.
-      trust_region: gp_critic's delta, the bound on the mean KL (nats) between the policy that
-        gathered an update's episodes and the improved one, over the update's decision states.
-      critic_lambda_horizon: gp_critic's lambda as a horizon (seconds): lambda = exp(-dt /
-        horizon) per control step dt, for `critic_targets='lambda'` (inf: 1, the returns with the
-        GP's mean where an episode is cut at its length; small: one-step targets).
-      model_learning_rate: gp_model's Adam step size on the simulated return.
-      model_beta: gp_model's optimism, the confidence multiple of the hallucinated control.
-      model_end_softness: gp_model's smoothing of a task's end in its simulated roll-outs (the
-        temperature of the end's probability, in units of the observation's normalisation scale).
+
+    The method's own settings (a pytree of their own; `methods.Method.settings`):
+      settings: an instance of the method's settings class, None for a method without one.
     """
 
     # static
@@ -230,20 +187,6 @@ class TrainConfig:
     hold_time: float = 0.0
     optimism: float = 0.0
     episode_end: str = "mask"
-    critic_steps: int = 50
-    critic_optimism: float = 0.0
-    critic_targets: str = "returns"
-    critic_window: int = 1
-    model_capacity: int = 4000
-    model_inducing: int = 200
-    model_fit_subset: int = 300
-    model_fit_steps: int = 50
-    model_particles: int = 16
-    model_steps: int = 100
-    model_horizon: float = 4.0
-    model_exploration: str = "mean"
-    model_optimizer: str = "adam"
-    model_reward: str = "auto"
     # traced
     learning_rate: Any = 2e-4
     max_grad_norm: Any = 300.0
@@ -262,15 +205,22 @@ class TrainConfig:
     candidate_floor: Any = 0.01
     success_tolerance: Any = 0.3
     pendulum: Any = None
-    critic_learning_rate: Any = 0.01
-    trust_region: Any = 0.05
-    critic_lambda_horizon: Any = 1.0
-    model_learning_rate: Any = 0.01
-    model_beta: Any = 1.0
-    model_end_softness: Any = 0.1
+    # the method's own
+    settings: Any = None
 
     def replace(self, **changes) -> TrainConfig:
-        return dataclasses.replace(self, **changes)
+        """A copy with fields changed. A method's setting may be given by its flat name
+        (`settings.declare`): it changes `settings` if it is the method's own, and is ignored as
+        another method's. A new `method` brings its own settings at their defaults (unless
+        `settings` is given too)."""
+        flat = {k: changes.pop(k) for k in list(changes) if k not in _FIELD_NAMES}
+        new = dataclasses.replace(self, **changes)
+        if "method" in changes and "settings" not in changes and new.method != self.method:
+            new = dataclasses.replace(new, settings=_default_settings(new.method))
+        own = _own_settings(new.method, flat)
+        if own:
+            new = dataclasses.replace(new, settings=settings_lib.replace_flat(new.settings, own))
+        return new
 
     @property
     def uses_gp(self) -> bool:
@@ -283,11 +233,15 @@ class TrainConfig:
         return -(-self.hyperfit_samples // self.episode_length)
 
     def static_dict(self) -> dict:
-        return {f: getattr(self, f) for f in STATIC_FIELDS}
+        """The static fields, the method's static settings among them (by their flat names)."""
+        return {**{f: getattr(self, f) for f in STATIC_FIELDS},
+                **settings_lib.to_flat(self.settings, "static")}
 
     def to_json_dict(self) -> dict:
-        """A JSON-serialisable view (traced leaves as Python floats or lists)."""
+        """A JSON-serialisable view (traced leaves as Python floats or lists), the method's
+        settings by their flat names, as presets and `--set` give them."""
         out: dict[str, Any] = self.static_dict()
+        out.update(settings_lib.to_flat(self.settings, "traced"))
         for f in TRACED_FIELDS:
             if f == "pendulum":
                 p = self.pendulum
@@ -301,7 +255,7 @@ class TrainConfig:
 
 
 # The fields by concern (each field in exactly one group; the names stay flat, as presets, tuning
-# records and `--set` give them). A method's own settings form a group of their own (critic).
+# records and `--set` give them). A method's own settings are its own (`methods.Method.settings`).
 FIELD_GROUPS: dict[str, tuple[str, ...]] = {
     "run": ("method", "num_updates", "episodes_per_update", "dtype", "eval_episodes"),
     "task": ("env", "pendulum", "episode_length", "episode_end", "success_hold_time",
@@ -315,36 +269,83 @@ FIELD_GROUPS: dict[str, tuple[str, ...]] = {
                     "noise_resample_time", "hold_time"),
     "estimator": ("discount", "use_baseline"),
     "optimiser": ("optimizer", "learning_rate", "max_grad_norm"),
-    "critic": ("critic_steps", "critic_optimism", "critic_targets", "critic_window",
-               "critic_learning_rate", "trust_region", "critic_lambda_horizon"),
-    "model": ("model_capacity", "model_inducing", "model_fit_subset", "model_fit_steps",
-              "model_particles", "model_steps", "model_horizon", "model_exploration",
-              "model_optimizer", "model_reward", "model_learning_rate", "model_beta",
-              "model_end_softness"),
 }
 
 
 def group_of(field: str) -> str:
-    """The `FIELD_GROUPS` group of a `TrainConfig` field (`KeyError` for no field)."""
+    """The `FIELD_GROUPS` group of a `TrainConfig` field, or the name of the method whose setting
+    it is (`KeyError` for neither)."""
     for group, fields in FIELD_GROUPS.items():
         if field in fields:
             return group
+    owners = methods.setting_owners()
+    if field in owners:
+        return owners[field]
     raise KeyError(field)
 
 
+_FIELD_NAMES = frozenset(f.name for f in dataclasses.fields(TrainConfig))
 TRACED_FIELDS = tuple(
-    f.name for f in dataclasses.fields(TrainConfig) if f.name not in STATIC_FIELDS
+    f.name for f in dataclasses.fields(TrainConfig) if f.name not in STATIC_FIELDS + ("settings",)
 )
 jax.tree_util.register_dataclass(
-    TrainConfig, data_fields=list(TRACED_FIELDS), meta_fields=list(STATIC_FIELDS)
+    TrainConfig, data_fields=list(TRACED_FIELDS) + ["settings"], meta_fields=list(STATIC_FIELDS)
 )
+
+
+def _default_settings(method: str):
+    """The settings of `method` at their defaults; None for a method without settings or one not
+    registered (validation names it)."""
+    try:
+        cls = methods.get(method).settings
+    except ValueError:
+        return None
+    return None if cls is None else cls()
+
+
+def setting_names(which: str = "all") -> tuple[str, ...]:
+    """The flat names of every registered method's settings (`which`: 'all', 'static' or
+    'traced')."""
+    out = []
+    for m in methods.names():
+        cls = methods.get(m).settings
+        if cls is not None:
+            out += [cls.FLAT[f] for f in {"all": cls.STATIC + cls.TRACED, "static": cls.STATIC,
+                                          "traced": cls.TRACED}[which]]
+    return tuple(out)
+
+
+def is_static(name: str) -> bool:
+    """Whether `name` is a static field or a static setting of a method (a new value of it needs
+    a new program)."""
+    return name in STATIC_FIELDS or name in setting_names("static")
+
+
+def field_defaults(method: str) -> dict[str, Any]:
+    """The default of every `TrainConfig` field that has one, and of `method`'s settings by their
+    flat names."""
+    out = {f.name: f.default for f in dataclasses.fields(TrainConfig)
+           if f.default is not dataclasses.MISSING and f.name != "settings"}
+    cls = methods.get(method).settings
+    if cls is not None:
+        out.update({name: default for name, default, _ in settings_lib.describe(cls)})
+    return out
+
+
+def _own_settings(method: str, flat: dict) -> dict:
+    """The flat settings of `flat` that are `method`'s own; `TypeError` for a name that is neither
+    a `TrainConfig` field nor any registered method's setting (another method's is ignored)."""
+    owners = methods.setting_owners()
+    unknown = set(flat) - set(owners)
+    if unknown:
+        raise TypeError(f"unknown TrainConfig field(s) or method setting(s): {sorted(unknown)}")
+    return {k: v for k, v in flat.items() if owners[k] == method}
 
 _POSITIVE = ("learning_rate", "max_grad_norm", "success_tolerance", "min_std", "max_std",
              "age_scale", "guided_variance_scale",
              "guided_variance_floor", "inverse_temperature", "energy_width", "candidate_scale",
-             "candidate_floor", "critic_learning_rate", "trust_region", "critic_lambda_horizon",
-             "model_learning_rate", "model_end_softness")
-_NON_NEGATIVE = ("age_penalty", "novelty_tol", "model_beta")
+             "candidate_floor")
+_NON_NEGATIVE = ("age_penalty", "novelty_tol")
 
 
 def _fail(field: str, message: str):
@@ -365,19 +366,12 @@ def _integer(v) -> bool:
 def _check_choices_and_sizes(cfg: TrainConfig) -> None:
     """The static fields: the named choices, the sizes and the durations."""
     for f, choices in (("controller", CONTROLLERS), ("age_fn", AGE_FUNCTIONS),
-                       ("optimizer", OPTIMIZERS), ("dtype", DTYPES),
-                       ("model_exploration", MODEL_EXPLORATIONS),
-                       ("model_optimizer", MODEL_OPTIMIZERS), ("model_reward", MODEL_REWARDS),
-                       ("critic_targets", CRITIC_TARGETS)):
+                       ("optimizer", OPTIMIZERS), ("dtype", DTYPES)):
         if getattr(cfg, f) not in choices:
-            what = {"age_fn": "age function", "model_exploration": "model exploration",
-                    "model_optimizer": "model optimiser",
-                    "model_reward": "model reward", "critic_targets": "critic targets"}.get(f, f)
+            what = {"age_fn": "age function"}.get(f, f)
             _fail(f, f"unknown {what} {getattr(cfg, f)!r}; choose from {choices}")
     for f in ("num_updates", "episodes_per_update", "episode_length", "gp_capacity",
-              "hyperfit_samples", "hyperfit_steps", "hyperfit_subset", "num_candidates", "gp_stride",
-              "model_capacity", "model_inducing", "model_fit_subset", "model_fit_steps",
-              "model_particles", "model_steps", "critic_window"):
+              "hyperfit_samples", "hyperfit_steps", "hyperfit_subset", "num_candidates", "gp_stride"):
         v = getattr(cfg, f)
         if not _integer(v) or v < 1:
             _fail(f, f"must be a positive integer, got {v!r}")
@@ -385,14 +379,11 @@ def _check_choices_and_sizes(cfg: TrainConfig) -> None:
         _fail("hyperfit_optimizer", f"must be 'adam' or 'lbfgs', got {cfg.hyperfit_optimizer!r}")
     if cfg.num_candidates < 2:
         _fail("num_candidates", f"the Gibbs policy needs at least 2 candidates, got {cfg.num_candidates}")
-    for f in ("eval_episodes", "critic_steps"):
-        v = getattr(cfg, f)
-        if not _integer(v) or v < 0:
-            _fail(f, f"must be an integer >= 0, got {v!r}")
-    for f in ("success_hold_time", "model_horizon"):
-        v = getattr(cfg, f)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
-            _fail(f, f"must be > 0 seconds, got {v!r}")
+    if not _integer(cfg.eval_episodes) or cfg.eval_episodes < 0:
+        _fail("eval_episodes", f"must be an integer >= 0, got {cfg.eval_episodes!r}")
+    v = cfg.success_hold_time
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+        _fail("success_hold_time", f"must be > 0 seconds, got {v!r}")
     if cfg.episode_end not in EPISODE_ENDS:
         _fail("episode_end", f"unknown episode end {cfg.episode_end!r}; choose from {EPISODE_ENDS}")
 
@@ -413,16 +404,11 @@ def _check_exploration(cfg: TrainConfig, method: methods.Method) -> None:
                         ("noise_exponent", lambda v: 0 <= v <= 3, "in [0, 3]"),
                         ("noise_resample_time", lambda v: v >= 0, ">= 0 seconds"),
                         ("hold_time", lambda v: v >= 0, ">= 0 seconds"),
-                        ("optimism", lambda v: v >= 0, ">= 0"),
-                        ("critic_optimism", lambda v: True, "a finite number")):
+                        ("optimism", lambda v: v >= 0, ">= 0")):
         v = getattr(cfg, f)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
                 or not ok(v):
             _fail(f, f"must be {what}, got {v!r}")
-    if cfg.critic_optimism != 0.0 and cfg.dtype != "float64":
-        # its closed form holds the GP's covariance correction C as a matrix, whose entries
-        # cancel where the basis vectors' Gram matrix is ill-conditioned (design: critic)
-        _fail("critic_optimism", f"needs dtype 'float64', got {cfg.dtype!r}")
 
 
 def _check_traced(cfg: TrainConfig) -> None:
@@ -437,8 +423,7 @@ def _check_traced(cfg: TrainConfig) -> None:
         if isinstance(v, jax.core.Tracer):
             continue
         arr = np.asarray(v, dtype=float)
-        finite = np.isfinite(arr) | ((f in ("max_grad_norm", "critic_lambda_horizon"))
-                                     & (arr == np.inf))
+        finite = np.isfinite(arr) | ((f == "max_grad_norm") & (arr == np.inf))
         if not np.all(finite):
             _fail(f, f"must be finite, got {v!r}")
         if f in _POSITIVE and np.any(arr <= 0):
@@ -465,6 +450,18 @@ def _check_environment(cfg: TrainConfig) -> None:
         _fail("pendulum", f"must be PendulumParams (pendulum.make_params), got {type(cfg.pendulum)}")
 
 
+def _check_settings(cfg: TrainConfig, method: methods.Method) -> None:
+    """The method's own settings: of its declared class (or None without one), then its check."""
+    if method.settings is None:
+        if cfg.settings is not None:
+            _fail("settings", f"{cfg.method} has no settings of its own, got {cfg.settings!r}")
+        return
+    if not isinstance(cfg.settings, method.settings):
+        _fail("settings", f"{cfg.method}'s settings are a {method.settings.__name__}, got "
+              f"{type(cfg.settings).__name__}")
+    cfg.settings.check(cfg)
+
+
 def validate(cfg: TrainConfig) -> TrainConfig:
     """Checks every field; raises `ValueError` naming the first bad one. Returns cfg."""
     method = _method_of(cfg)
@@ -472,6 +469,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     _check_exploration(cfg, method)
     _check_traced(cfg)
     _check_environment(cfg)
+    _check_settings(cfg, method)
     if method.check is not None:
         method.check(cfg)
     return cfg
@@ -482,6 +480,9 @@ def __getattr__(name):
         return methods.names()
     if name == "PAPER_METHODS":  # the paper's four (Fig. 5; what `reproduce` runs by default)
         return methods.paper()
+    if name == "METHOD_PRESETS":  # preset -> method -> its tuned settings (`Method.presets`)
+        return {p: {m: dict(methods.get(m).presets[p]) for m in methods.names()
+                    if p in methods.get(m).presets} for p in PRESETS}
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
@@ -508,11 +509,17 @@ def make_config(*, pendulum_overrides: dict | None = None, discount_horizon: flo
 
     `discount_horizon`: the discount as a horizon in seconds, gamma = exp(-dt / horizon) with dt
     the environment's control interval (`tasks.discount_for_horizon`); it replaces `discount`.
+    The method's settings may be given by their flat names (`settings.declare`; another
+    method's are ignored, so that one set of overrides serves every method of a run).
     """
-    unknown = set(fields) - {f.name for f in dataclasses.fields(TrainConfig)}
-    if unknown:
-        raise TypeError(f"unknown TrainConfig field(s): {sorted(unknown)}")
+    flat = {k: fields.pop(k) for k in list(fields) if k not in _FIELD_NAMES}
+    method = fields.get("method", TrainConfig.method)
+    own = _own_settings(method, flat)
     dtype = fields.get("dtype", TrainConfig.dtype)
+    if fields.get("settings") is None:
+        fields["settings"] = _default_settings(method)
+    if own and fields["settings"] is not None:
+        fields["settings"] = settings_lib.replace_flat(fields["settings"], own)
     if dtype in DTYPES:
         check_dtype_available(dtype)
     if fields.get("pendulum") is None:
@@ -528,6 +535,7 @@ def make_config(*, pendulum_overrides: dict | None = None, discount_horizon: flo
             _fail("discount", str(e))
     return cfg.replace(
         pendulum=jax.tree_util.tree_map(lambda a: jnp.asarray(a, cfg.dtype), cfg.pendulum),
+        settings=settings_lib.cast(cfg.settings, cfg.dtype),
         **{f: jnp.asarray(getattr(cfg, f), cfg.dtype) for f in TRACED_FIELDS if f != "pendulum"},
     )
 
@@ -601,102 +609,6 @@ PRESETS.update({
 })
 
 
-# Per preset, per method: settings chosen by tuning one method at a time (applied after the
-# preset's own fields and before the caller's overrides).
-METHOD_PRESETS: dict[str, dict[str, dict]] = {
-    # experiments/exploration_study.py tune (seeds 100-101; docs/exploration.md): correlated
-    # exploration or held actions at a larger amplitude, the baseline, the horizon in seconds.
-    # guided_variance keeps the age penalty of the white-noise tuning (docs/tuning_swingup.md).
-    "swingup": {
-        "reinforce": {"learning_rate": 0.03, "use_baseline": True, "init_log_std": math.log(4.0),
-                      "discount_horizon": 0.5, "hold_time": 0.5},
-        "gp_pg": {"learning_rate": 0.03, "use_baseline": True, "init_log_std": math.log(4.0),
-                  "discount_horizon": 0.5, "hold_time": 0.5},
-        "guided_variance": {"learning_rate": 0.03, "use_baseline": True, "age_penalty": 10.0,
-                            "guided_variance_scale": 16.0, "discount_horizon": 0.5,
-                            "hold_time": 0.5},
-        "guided_direction": {"learning_rate": 0.03, "use_baseline": True, "candidate_scale": 16.0,
-                             "discount_horizon": 0.5, "hold_time": 0.2},
-        "gp_critic": {"learning_rate": 0.03, "use_baseline": True, "init_log_std": math.log(4.0),
-                      "discount_horizon": 0.5, "hold_time": 0.5, "critic_learning_rate": 0.01},
-        # experiments/model_study.py (docs/model_based.md): 10 episodes, decisions held 0.1 s
-        "gp_model": {"episodes_per_update": 1, "hold_time": 0.1, "init_log_std": math.log(2.0),
-                     "min_std": 0.05, "eval_episodes": 10, "model_horizon": 6.0,
-                     "num_updates": 11, "model_exploration": "thompson"},
-    },
-    # experiments/standard_tasks.py tune (seeds 100-101; docs/standard_tasks.md), the horizon in
-    # seconds; then the exploration each method chose at those settings on the same seeds
-    # (experiments/exploration_study.py standard-tune; docs/exploration.md), white where none is
-    # named
-    "pendulum-v1": {
-        "reinforce": {"learning_rate": 0.03, "discount_horizon": 0.5},
-        "gp_pg": {"learning_rate": 0.003, "init_log_std": math.log(2.0), "hold_time": 0.2},
-        "guided_variance": {"learning_rate": 0.01},
-        "guided_direction": {"learning_rate": 0.03, "discount_horizon": 0.5, "candidate_scale": 1.0},
-        "gp_critic": {"critic_learning_rate": 0.03, "hold_time": 0.2},
-        # experiments/model_study.py: its budget (2,000 steps, one episode an update), base
-        # settings and tuned ones (docs/model_based.md)
-        "gp_model": {"episodes_per_update": 1, "num_updates": 11, "init_log_std": 0.0,
-                     "min_std": 0.05, "eval_episodes": 10, "model_exploration": "thompson",
-                     "model_horizon": 2.0, "model_learning_rate": 0.03, "model_steps": 200,
-                     "model_inducing": 400},
-    },
-    "mountaincar-continuous": {  # the horizon in steps (the car's step counts as 1 s)
-        "reinforce": {"learning_rate": 0.01, "discount_horizon": 30.0, "init_log_std": 0.0,
-                      "exploration": "ou", "noise_correlation_time": 100.0},
-        "gp_pg": {"learning_rate": 0.03, "discount_horizon": 300.0, "exploration": "ou",
-                  "noise_correlation_time": 10.0},
-        "guided_variance": {"learning_rate": 0.003, "guided_variance_scale": 0.25,
-                            "hold_time": 10.0},
-        "guided_direction": {"learning_rate": 0.01, "discount_horizon": 30.0,
-                             "candidate_scale": 0.25, "inverse_temperature": 100.0},
-        "gp_critic": {"critic_learning_rate": 0.01, "exploration": "ou",
-                      "noise_correlation_time": 10.0},
-        # experiments/model_study.py (docs/model_based.md): 10 episodes, decisions held 5 steps
-        "gp_model": {"episodes_per_update": 1, "hold_time": 5.0, "init_log_std": 0.0,
-                     "min_std": 0.05, "eval_episodes": 5, "model_horizon": 200.0,
-                     "model_end_softness": 1.0, "num_updates": 11,
-                     "model_exploration": "thompson"},
-    },
-    # brax's pendulums: their exploration was chosen with ended episodes restarted, which their
-    # presets therefore hold too
-    "inverted-pendulum": {
-        "reinforce": {"learning_rate": 0.01, "discount_horizon": 2.0,
-                      "init_log_std": math.log(0.25), "episode_end": "restart",
-                      "hold_time": 0.08},
-        "gp_pg": {"learning_rate": 0.01, "episode_end": "restart", "exploration": "ou",
-                  "noise_correlation_time": 0.1},
-        "guided_variance": {"learning_rate": 0.003, "guided_variance_scale": 2.0,
-                            "episode_end": "restart", "hold_time": 0.08},
-        "guided_direction": {"learning_rate": 0.01, "discount_horizon": 2.0,
-                             "inverse_temperature": 1.0, "episode_end": "restart"},
-        "gp_critic": {"critic_learning_rate": 0.003, "critic_steps": 10, "episode_end": "restart",
-                      "hold_time": 0.08},
-        # experiments/model_study.py (docs/model_based.md): restarted episodes, 6,000 steps
-        "gp_model": {"episodes_per_update": 1, "num_updates": 7, "episode_end": "restart",
-                     "init_log_std": math.log(0.5), "min_std": 0.05, "eval_episodes": 5,
-                     "model_capacity": 3000, "model_horizon": 4.0, "model_exploration": "sample"},
-    },
-    "inverted-double-pendulum": {
-        "reinforce": {"learning_rate": 0.01, "init_log_std": math.log(0.25),
-                      "episode_end": "restart", "exploration": "ou",
-                      "noise_correlation_time": 0.1},
-        "gp_pg": {"learning_rate": 0.01, "episode_end": "restart", "exploration": "ou",
-                  "noise_correlation_time": 0.1},
-        "guided_variance": {"learning_rate": 0.003, "discount_horizon": 2.0,
-                            "guided_variance_scale": 0.25, "episode_end": "restart",
-                            "hold_time": 0.08},
-        "guided_direction": {"learning_rate": 0.01, "discount_horizon": 0.5,
-                             "episode_end": "restart"},
-        "gp_critic": {"critic_learning_rate": 0.003, "episode_end": "restart"},
-        # experiments/model_study.py (docs/model_based.md): 6,000 steps
-        "gp_model": {"episodes_per_update": 1, "num_updates": 7, "episode_end": "restart",
-                     "init_log_std": math.log(0.5), "min_std": 0.05, "eval_episodes": 5,
-                     "model_capacity": 3000, "model_horizon": 4.0,
-                     "model_exploration": "optimistic"},
-    },
-}
-
 # Per standard preset, brax's PPO and SAC as tuned with the methods' budget
 # (experiments/standard_tasks.py tune; docs/standard_tasks.md): overrides of
 # `baselines.PPO_DEFAULTS` / `SAC_DEFAULTS`, a 'horizon' in seconds for the discount.
@@ -713,15 +625,24 @@ BASELINE_PRESETS: dict[str, dict[str, dict]] = {
 }
 
 
+def _method_preset(preset_name: str, method: str) -> dict:
+    """The settings `method` was tuned to on the preset (`Method.presets`; none for a method that
+    is not registered, which validation then names)."""
+    try:
+        return dict(methods.get(method).presets.get(preset_name, {}))
+    except ValueError:
+        return {}
+
+
 def preset(name: str, **overrides) -> TrainConfig:
     """The named preset (`PRESETS`: 'paper', 'swingup', 'tiny' and the standard tasks) with field
-    overrides (`discount_horizon` among them), validated. If
-    `overrides` name a method with tuned settings for this preset (`METHOD_PRESETS`), those apply
-    before the other overrides."""
+    overrides (`discount_horizon` among them), validated. If `overrides` name a method with
+    tuned settings for this preset (its `Method.presets`), those apply before the other
+    overrides."""
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
     fields = dict(PRESETS[name])
-    fields.update(METHOD_PRESETS.get(name, {}).get(overrides.get("method", TrainConfig.method), {}))
+    fields.update(_method_preset(name, overrides.get("method", TrainConfig.method)))
     pend = dict(fields.pop("pendulum_overrides", {}) or {})
     pend.update(overrides.pop("pendulum_overrides", {}) or {})
     if "discount" in overrides:  # a discount given per step replaces the preset's horizon

@@ -1,8 +1,8 @@
 """Deterministic controllers c(s; theta_c) = u_max * tanh(theta_c^T psi(s)) (paper §II; design:
 docs/design.md#policies).
 
-A controller is linear in its parameters before the squashing, so its parameter pytree and its
-feature map psi(s) have the same structure, and
+The controllers here are linear in their parameters before the squashing, so the parameter pytree
+and the feature map psi(s) have the same structure, and
 
   dc/dtheta_c = u_max * (1 - tanh(z)^2) * psi(s),   z = <theta_c, psi(s)>.
 
@@ -51,23 +51,27 @@ class RBFParams(NamedTuple):
 
 
 class Controller(NamedTuple):
-    """A squashed, linear-in-parameters controller, as a bundle of pure functions.
+    """A controller as a bundle of pure functions: what every method needs is `init` and `apply`
+    (gp_model's gradients come by autodiff through them); the paper's estimators also need the
+    hand-derived `value_and_grad`, which the squashed, linear-in-parameters controllers here give.
 
     Attributes:
       init: `init(dtype=None) -> params`, the deterministic initialiser (all zeros, so c(s) = 0
         everywhere and tanh is at its steepest).
-      features: `features(state) -> psi`, a pytree like params.
       apply: `apply(params, state) -> c`, the torque c(s; theta_c) in (-u_max, u_max).
-      value_and_grad: `value_and_grad(params, state) -> (c, dc_dparams)`, with the hand-derived
-        gradient dc/dtheta_c as a pytree like params.
       u_max: the torque limit (a Python float, static).
+      features: `features(state) -> psi`, a pytree like params (a linear-in-parameters
+        controller's; None for another).
+      value_and_grad: `value_and_grad(params, state) -> (c, dc_dparams)`, with the hand-derived
+        gradient dc/dtheta_c as a pytree like params (None: a controller for methods that
+        differentiate `apply` by autodiff only).
     """
 
     init: Callable[..., Params]
-    features: Callable[[jax.Array], Params]
     apply: Callable[[Params, jax.Array], jax.Array]
-    value_and_grad: Callable[[Params, jax.Array], tuple[jax.Array, Params]]
     u_max: float
+    features: Callable[[jax.Array], Params] | None = None
+    value_and_grad: Callable[[Params, jax.Array], tuple[jax.Array, Params]] | None = None
 
 
 def _preactivation(params: Params, psi: Params) -> jax.Array:
@@ -101,7 +105,7 @@ def make_squashed(features_fn, zeros_fn, u_max: float, state_dim: int = 2) -> Co
         return zeros_fn(dtype or jnp.result_type(float))
 
     return Controller(
-        init=init, features=features, apply=apply, value_and_grad=value_and_grad, u_max=u_max
+        init=init, apply=apply, u_max=u_max, features=features, value_and_grad=value_and_grad
     )
 
 

@@ -42,17 +42,86 @@ N(c(s), sigma^2): white, Ornstein-Uhlenbeck and coloured noise, with or without 
 
 from __future__ import annotations
 
-from typing import NamedTuple
+import math
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import optax
 
 from gpguided_jax import config, estimators, kernels, methods, policy_gradient, sparse_gp
+from gpguided_jax import settings as settings_lib
 
 LINE_SEARCH_HALVINGS = 10
 RECORDS = policy_gradient.RECORDS + ("critic_gain", "critic_kl", "critic_step_fraction",
                                      "critic_error", "action_lengthscale")
+# its GP targets: the paper's returns-to-go, or lambda-returns bootstrapped with the GP's own mean
+TARGETS = ("returns", "lambda")
+
+
+@settings_lib.declare(static=("steps", "optimism", "targets", "window"), prefix="critic_",
+                      aliases={"trust_region": "trust_region"})
+class CriticSettings:
+    """gp_critic's own settings (flat names `critic_<field>`, and `trust_region`).
+
+    Static:
+      steps: K, the surrogate steps against Q_GP per update (0: gp_pg exactly).
+      optimism: kappa: the surrogate scores a state by E_a Q_GP + kappa (E_a sigma_Q^2)^(1/2),
+        sigma_Q the GP's latent standard deviation (> 0 optimistic, < 0 pessimistic; 0: the mean
+        alone). Needs float64.
+      targets: its GP targets: 'returns' (the paper's returns-to-go) or 'lambda' (lambda-returns
+        bootstrapped with the GP's own mean, `bootstrapped_targets`).
+      window: in updates: the surrogate and its trust region run over the decision states of the
+        last `window` updates' episodes (1: the update's own).
+
+    Traced:
+      learning_rate: Adam's step size on the surrogate.
+      trust_region: delta, the bound on the mean KL (nats) between the policy that gathered an
+        update's episodes and the improved one, over the update's decision states.
+      lambda_horizon: lambda as a horizon (seconds): lambda = exp(-dt / horizon) per control step
+        dt, for targets 'lambda' (inf: 1, the returns with the GP's mean where an episode is cut
+        at its length; small: one-step targets).
+    """
+
+    steps: int = 50
+    optimism: float = 0.0
+    targets: str = "returns"
+    window: int = 1
+    learning_rate: Any = 0.01
+    trust_region: Any = 0.05
+    lambda_horizon: Any = 1.0
+
+    def check(self, cfg) -> None:
+        """Raises `settings.SettingError` naming the first setting that makes no sense."""
+        flat = type(self).FLAT
+        settings_lib.choice(flat["targets"], self.targets, TARGETS, "critic targets")
+        settings_lib.integer(flat["window"], self.window, 1)
+        settings_lib.integer(flat["steps"], self.steps, 0)
+        settings_lib.number(flat["optimism"], self.optimism)
+        if self.optimism != 0.0 and cfg.dtype != "float64":
+            # its closed form holds the GP's covariance correction C as a matrix, whose entries
+            # cancel where the basis vectors' Gram matrix is ill-conditioned (design: critic)
+            settings_lib.fail(flat["optimism"], f"needs dtype 'float64', got {cfg.dtype!r}")
+        settings_lib.traced(flat["learning_rate"], self.learning_rate, positive=True)
+        settings_lib.traced(flat["trust_region"], self.trust_region, positive=True)
+        settings_lib.traced(flat["lambda_horizon"], self.lambda_horizon, positive=True,
+                            allow_inf=True)
+
+
+# The settings gp_critic was tuned to, per preset (`Method.presets`): experiments/
+# exploration_study.py tune on the swing-up; experiments/standard_tasks.py tune on the standard
+# tasks, then the exploration chosen at those settings (experiments/exploration_study.py
+# standard-tune); seeds 100-101 (docs/exploration.md, docs/standard_tasks.md).
+PRESETS = {
+    "swingup": {"learning_rate": 0.03, "use_baseline": True, "init_log_std": math.log(4.0),
+                "discount_horizon": 0.5, "hold_time": 0.5, "critic_learning_rate": 0.01},
+    "pendulum-v1": {"critic_learning_rate": 0.03, "hold_time": 0.2},
+    "mountaincar-continuous": {"critic_learning_rate": 0.01, "exploration": "ou",
+                               "noise_correlation_time": 10.0},
+    "inverted-pendulum": {"critic_learning_rate": 0.003, "critic_steps": 10,
+                          "episode_end": "restart", "hold_time": 0.08},
+    "inverted-double-pendulum": {"critic_learning_rate": 0.003, "episode_end": "restart"},
+}
 
 
 def state_factors(gp: sparse_gp.SparseGPState, kernel: kernels.KernelParams, x_state) -> jax.Array:
@@ -253,12 +322,12 @@ class Window(NamedTuple):
 
 def init(prog, key, cfg):
     """The empty `Window` (every weight 0), or () with a window of the update alone."""
-    del key, cfg
+    del key
     static = prog.config
-    if static.critic_window == 1:
+    if cfg.settings.window == 1:
         return ()
     per_update = static.episodes_per_update * -(-static.episode_length // prog.hold)
-    shape = (static.critic_window - 1, per_update)
+    shape = (cfg.settings.window - 1, per_update)
     return Window(states=jnp.zeros(shape + (prog.task.obs_dim,), prog.dtype),
                   weights=jnp.zeros(shape, prog.dtype))
 
@@ -306,12 +375,12 @@ def unseen_error(prog, gp, kernel, eps, returns):
 
 def bootstrapped_targets(prog, cfg, state, ep, returns):
     """gp_critic's GP targets for one episode (`Method.targets`): its returns-to-go, or with
-    `critic_targets='lambda'` its `estimators.lambda_returns` with the critic's value Q_GP(s_{t+1}, a_{t+1})
+    targets 'lambda' its `estimators.lambda_returns` with the critic's value Q_GP(s_{t+1}, a_{t+1})
     of the GP the update started from (at the episode's last step, where it is cut at its length,
-    the action is the controller's c(s_H)), lambda = exp(-dt / `critic_lambda_horizon`). An
+    the action is the controller's c(s_H)), lambda = exp(-dt / `lambda_horizon`). An
     episode ends (no bootstrap) where it stops being alive, where it restarts, or at the last
     step where the task's stated end (`Task.end_fn`) holds."""
-    if prog.config.critic_targets == "returns":
+    if cfg.settings.targets == "returns":
         return returns
     task, dtype = prog.task, returns.dtype
     last = prog.controller.apply(state.theta.controller, ep.next_states[-1])
@@ -326,31 +395,32 @@ def bootstrapped_targets(prog, cfg, state, ep, returns):
         cut = ep.alive & ~jnp.concatenate([ep.alive[1:], (~ends_last)[None]])
     else:
         cut = jnp.zeros(returns.shape, bool)
-    lam = jnp.exp(-config.control_interval(prog.config) / jnp.asarray(cfg.critic_lambda_horizon,
+    lam = jnp.exp(-config.control_interval(prog.config) / jnp.asarray(cfg.settings.lambda_horizon,
                                                                        dtype))
     return estimators.lambda_returns(ep.rewards, q, cut, cfg.discount, lam)
 
 
 def critic_update(prog, cfg, state, batch):
-    """gp_pg's step (eq. 9), then `critic_steps` surrogate steps in the trust region. Its records
+    """gp_pg's step (eq. 9), then the settings' `steps` surrogate steps in the trust region. Its records
     add the surrogate's gain, the mean KL, the fraction of the move taken, the critic's error on
     the update's episodes before the GP took them in (`unseen_error`) and the action
     length-scale."""
+    own = cfg.settings
     theta, opt_state, _, records = policy_gradient.q_gp_update(prog, cfg, state, batch)
     states, x, weights, method_state = _window_states(prog, state.method_state, batch.episodes)
     zero = jnp.zeros((), prog.dtype)
     records = dict(records, critic_error=unseen_error(prog, state.gp, state.kernel,
                                                       batch.episodes, batch.returns),
                    action_lengthscale=state.kernel.lengthscales[-1].astype(prog.dtype))
-    if prog.config.critic_steps == 0:
+    if own.steps == 0:
         return theta, opt_state, method_state, dict(
             records, critic_gain=zero, critic_kl=zero, critic_step_fraction=zero)
-    kappa = prog.config.critic_optimism or None  # 0: the mean alone, no variance computed
+    kappa = own.optimism or None  # 0: the mean alone, no variance computed
     factors = jax.vmap(lambda xs: state_factors(batch.gp, state.kernel, xs))(x)
     new, gain, kl, frac = improve(
         prog.controller, batch.gp, state.kernel, state.theta, theta, states, factors, weights,
-        num_steps=prog.config.critic_steps, learning_rate=cfg.critic_learning_rate,
-        trust_region=cfg.trust_region, min_std=cfg.min_std, max_std=cfg.max_std, optimism=kappa,
+        num_steps=own.steps, learning_rate=own.learning_rate,
+        trust_region=own.trust_region, min_std=cfg.min_std, max_std=cfg.max_std, optimism=kappa,
         correction=None if kappa is None else sparse_gp.covariance_correction(batch.gp))
     return new, opt_state, method_state, dict(
         records, critic_gain=gain, critic_kl=kl, critic_step_fraction=frac.astype(prog.dtype))
@@ -360,6 +430,7 @@ methods.register(methods.Method(
     name="gp_critic", policy="fixed_noise", prior="q_gp", init=init,
     update=critic_update, records=RECORDS, explorations=("white", "ou", "coloured"),
     compare_with=("reinforce", "gp_pg"), fit_fields=methods.Q_GP_FIT_FIELDS,
-    targets=bootstrapped_targets,
+    targets=bootstrapped_targets, settings=CriticSettings, presets=PRESETS,
+    check=policy_gradient.check_hand_gradient,
     explain_exploration="'parameter' noise makes the action's distribution depend on the state "
                         "through the weights, which the closed-form surrogate does not take"))

@@ -24,16 +24,19 @@ and its own records. Everything else a driver needs is declared:
   paper           whether it is one of the paper's methods (what `gpguided reproduce` runs by
                   default, Fig. 5).
 
+  settings        the class of its own settings (`gpguided_jax.settings.declare`), or None;
+  presets         the settings it was tuned to, per preset.
+
 `train`, `reproduce`, `sweep`, the summaries and the studies read these declarations; none of them
 compares a method's name to a string. The paper's four methods are declared in
 `gpguided_jax.policy_gradient`, gp_critic in `gpguided_jax.critic`, gp_model in
-`gpguided_jax.model_based`; a new method is a module with
-its `Method` and a call of `register` (a test may register one too).
+`gpguided_jax.model_based`, each registered when its module is imported, and the package imports
+them (`gpguided_jax/__init__.py`); a new method is a module with its `Method` and a call of
+`register` (a test may register one too). This module is the registry only: it imports no method.
 """
 
 from __future__ import annotations
 
-import importlib
 from typing import Any, Callable, NamedTuple
 
 PRIORS = ("none", "q_gp")
@@ -79,6 +82,11 @@ class Method(NamedTuple):
         returns-to-go); None: the returns-to-go (the paper's).
       eval_held: its evaluation episodes decide every `hold_time`, as its learning episodes do (a
         controller optimised for held actions, gp_model's); False: at every control step.
+      settings: the class of the method's own settings (`settings.declare`), whose instance a
+        config of this method holds as `TrainConfig.settings`; None: no settings of its own. Its
+        `check(cfg)` validates them with the config they belong to.
+      presets: preset name -> the settings the method was tuned to on it (flat names: shared
+        fields and its own settings), applied by `config.preset` after the preset's fields.
     """
 
     name: str
@@ -95,6 +103,8 @@ class Method(NamedTuple):
     paper: bool = False
     eval_held: bool = False
     targets: Callable[..., Any] | None = None
+    settings: type | None = None
+    presets: dict[str, dict] = {}
 
     @property
     def uses_gp(self) -> bool:
@@ -103,18 +113,10 @@ class Method(NamedTuple):
 
 
 _REGISTRY: dict[str, Method] = {}
-# modules that declare methods, imported on the first look-up (they import `train`'s pieces,
-# which import the config, which looks methods up: importing them here would be a cycle)
-_BUILTIN_MODULES = ("gpguided_jax.policy_gradient", "gpguided_jax.critic", "gpguided_jax.model_based")
-_loaded = False
-
-
-def _load_builtins() -> None:
-    global _loaded
-    if not _loaded:
-        _loaded = True
-        for name in _BUILTIN_MODULES:
-            importlib.import_module(name)
+# the modules of the built-in methods, in the order their methods are listed (the paper's first);
+# the package imports them (`gpguided_jax/__init__.py`)
+_BUILTIN_MODULES = ("gpguided_jax.policy_gradient", "gpguided_jax.critic",
+                    "gpguided_jax.model_based.method")
 
 
 def register(method: Method, *, replace: bool = False) -> Method:
@@ -129,6 +131,13 @@ def register(method: Method, *, replace: bool = False) -> Method:
         raise ValueError(f"method {method.name!r}: a prior needs the fields its fit reads")
     if method.name in _REGISTRY and not replace:
         raise ValueError(f"method {method.name!r} is already registered")
+    if method.settings is not None:
+        taken = {f: m.name for m in _REGISTRY.values() if m.name != method.name and m.settings
+                 for f in m.settings.FLAT.values()}
+        clash = sorted(set(method.settings.FLAT.values()) & set(taken))
+        if clash:
+            raise ValueError(f"method {method.name!r}: settings {clash} are already "
+                             f"{taken[clash[0]]}'s")
     _REGISTRY[method.name] = method
     return method
 
@@ -140,7 +149,6 @@ def unregister(name: str) -> None:
 
 def get(name: str) -> Method:
     """The registered `Method` called `name`; `ValueError` naming the choices if there is none."""
-    _load_builtins()
     if name not in _REGISTRY:
         raise ValueError(f"unknown method {name!r}; choose from {names()}")
     return _REGISTRY[name]
@@ -156,7 +164,6 @@ def _rank(name: str) -> int:
 def names() -> tuple[str, ...]:
     """Every registered method's name: the built-in ones (the paper's four first), then the
     others, each in registration order."""
-    _load_builtins()
     return tuple(sorted(_REGISTRY, key=_rank))  # a stable sort: registration order within a rank
 
 
@@ -194,3 +201,9 @@ def shares_program(a: Method, b: Method) -> bool:
     the same prior, initial state, improvement step and GP targets; only their policies differ."""
     return (a.prior == b.prior and a.init is b.init and a.update is b.update
             and a.targets is b.targets)
+
+
+def setting_owners() -> dict[str, str]:
+    """flat setting name -> the registered method whose settings it is (`Method.settings`)."""
+    return {f: m.name for m in _REGISTRY.values() if m.settings is not None
+            for f in m.settings.FLAT.values()}

@@ -15,11 +15,13 @@ clipped to [min_std, max_std]).
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import optax
 
-from gpguided_jax import estimators, exploration, methods, sparse_gp
+from gpguided_jax import estimators, exploration, methods, sparse_gp, tasks
 
 # The improvement step's own records (beside `methods.SHARED_RECORDS`).
 RECORDS = ("grad_norm", "grad_clipped", "nonfinite_grad", "std_at_bound")
@@ -94,6 +96,16 @@ def _make_update(q_gp: bool):
     return update
 
 
+def check_hand_gradient(cfg) -> None:
+    """The score-function estimators (eq. 4, 9) and the Gaussian policies' scores use the
+    controller's hand-derived gradient (`Controller.value_and_grad`): refuse one without it."""
+    controller = tasks.make_task(cfg.env).make_controller(cfg.controller)
+    if controller.value_and_grad is None:
+        raise ValueError(f"TrainConfig.controller: {cfg.method} needs the controller's "
+                         f"hand-derived gradient (Controller.value_and_grad), which "
+                         f"{cfg.controller!r} does not give")
+
+
 def no_state(prog, key, cfg):
     """The initial state of a method with no state of its own: ()."""
     del prog, key, cfg
@@ -103,24 +115,98 @@ def no_state(prog, key, cfg):
 reinforce_update = _make_update(q_gp=False)
 q_gp_update = _make_update(q_gp=True)
 
+# The settings each of the paper's methods was tuned to, per preset (`Method.presets`; applied
+# after the preset's own fields and before the caller's overrides), chosen one method at a time.
+TUNED: dict[str, dict[str, dict]] = {
+    # experiments/exploration_study.py tune (seeds 100-101; docs/exploration.md): correlated
+    # exploration or held actions at a larger amplitude, the baseline, the horizon in seconds.
+    # guided_variance keeps the age penalty of the white-noise tuning (docs/tuning_swingup.md).
+    "swingup": {
+        "reinforce": {"learning_rate": 0.03, "use_baseline": True, "init_log_std": math.log(4.0),
+                      "discount_horizon": 0.5, "hold_time": 0.5},
+        "gp_pg": {"learning_rate": 0.03, "use_baseline": True, "init_log_std": math.log(4.0),
+                  "discount_horizon": 0.5, "hold_time": 0.5},
+        "guided_variance": {"learning_rate": 0.03, "use_baseline": True, "age_penalty": 10.0,
+                            "guided_variance_scale": 16.0, "discount_horizon": 0.5,
+                            "hold_time": 0.5},
+        "guided_direction": {"learning_rate": 0.03, "use_baseline": True, "candidate_scale": 16.0,
+                             "discount_horizon": 0.5, "hold_time": 0.2},
+    },
+    # experiments/standard_tasks.py tune (seeds 100-101; docs/standard_tasks.md), the horizon in
+    # seconds; then the exploration each method chose at those settings on the same seeds
+    # (experiments/exploration_study.py standard-tune; docs/exploration.md), white where none is
+    # named
+    "pendulum-v1": {
+        "reinforce": {"learning_rate": 0.03, "discount_horizon": 0.5},
+        "gp_pg": {"learning_rate": 0.003, "init_log_std": math.log(2.0), "hold_time": 0.2},
+        "guided_variance": {"learning_rate": 0.01},
+        "guided_direction": {"learning_rate": 0.03, "discount_horizon": 0.5, "candidate_scale": 1.0},
+    },
+    "mountaincar-continuous": {  # the horizon in steps (the car's step counts as 1 s)
+        "reinforce": {"learning_rate": 0.01, "discount_horizon": 30.0, "init_log_std": 0.0,
+                      "exploration": "ou", "noise_correlation_time": 100.0},
+        "gp_pg": {"learning_rate": 0.03, "discount_horizon": 300.0, "exploration": "ou",
+                  "noise_correlation_time": 10.0},
+        "guided_variance": {"learning_rate": 0.003, "guided_variance_scale": 0.25,
+                            "hold_time": 10.0},
+        "guided_direction": {"learning_rate": 0.01, "discount_horizon": 30.0,
+                             "candidate_scale": 0.25, "inverse_temperature": 100.0},
+    },
+    # brax's pendulums: their exploration was chosen with ended episodes restarted, which their
+    # presets therefore hold too
+    "inverted-pendulum": {
+        "reinforce": {"learning_rate": 0.01, "discount_horizon": 2.0,
+                      "init_log_std": math.log(0.25), "episode_end": "restart",
+                      "hold_time": 0.08},
+        "gp_pg": {"learning_rate": 0.01, "episode_end": "restart", "exploration": "ou",
+                  "noise_correlation_time": 0.1},
+        "guided_variance": {"learning_rate": 0.003, "guided_variance_scale": 2.0,
+                            "episode_end": "restart", "hold_time": 0.08},
+        "guided_direction": {"learning_rate": 0.01, "discount_horizon": 2.0,
+                             "inverse_temperature": 1.0, "episode_end": "restart"},
+    },
+    "inverted-double-pendulum": {
+        "reinforce": {"learning_rate": 0.01, "init_log_std": math.log(0.25),
+                      "episode_end": "restart", "exploration": "ou",
+                      "noise_correlation_time": 0.1},
+        "gp_pg": {"learning_rate": 0.01, "episode_end": "restart", "exploration": "ou",
+                  "noise_correlation_time": 0.1},
+        "guided_variance": {"learning_rate": 0.003, "discount_horizon": 2.0,
+                            "guided_variance_scale": 0.25, "episode_end": "restart",
+                            "hold_time": 0.08},
+        "guided_direction": {"learning_rate": 0.01, "discount_horizon": 0.5,
+                             "episode_end": "restart"},
+    },
+}
+
+
+def _tuned(method: str) -> dict[str, dict]:
+    """preset -> `method`'s tuned settings on it (`TUNED`)."""
+    return {p: per[method] for p, per in TUNED.items() if method in per}
+
+
 _ALL_NOISES = exploration.NOISES
 _GAUSSIAN_NOISES = tuple(n for n in exploration.NOISES if n != "parameter")
 
 methods.register(methods.Method(
     name="reinforce", policy="fixed_noise", prior="none", init=no_state,
-    update=reinforce_update, records=RECORDS, explorations=_ALL_NOISES, paper=True))
+    update=reinforce_update, records=RECORDS, explorations=_ALL_NOISES, paper=True,
+    presets=_tuned("reinforce"), check=check_hand_gradient))
 methods.register(methods.Method(
     name="gp_pg", policy="fixed_noise", prior="q_gp", init=no_state, update=q_gp_update,
     records=RECORDS, explorations=_ALL_NOISES, compare_with=("reinforce",),
-    fit_fields=methods.Q_GP_FIT_FIELDS, paper=True))
+    fit_fields=methods.Q_GP_FIT_FIELDS, paper=True, presets=_tuned("gp_pg"),
+    check=check_hand_gradient))
 methods.register(methods.Method(
     name="guided_variance", policy="guided_variance", prior="q_gp", init=no_state,
     update=q_gp_update, records=RECORDS, explorations=_GAUSSIAN_NOISES,
     compare_with=("reinforce", "gp_pg"), fit_fields=methods.Q_GP_FIT_FIELDS, paper=True,
-    explain_exploration="'parameter' noise perturbs the fixed-noise policy's controller"))
+    explain_exploration="'parameter' noise perturbs the fixed-noise policy's controller",
+    presets=_tuned("guided_variance"), check=check_hand_gradient))
 methods.register(methods.Method(
     name="guided_direction", policy="gibbs", prior="q_gp", init=no_state, update=q_gp_update,
     records=RECORDS, explorations=("white",), compare_with=("reinforce", "gp_pg"),
     fit_fields=methods.Q_GP_FIT_FIELDS, paper=True,
     explain_exploration="guided_direction draws its candidates afresh at each decision (hold "
-                        "its choice with hold_time)"))
+                        "its choice with hold_time)", presets=_tuned("guided_direction"),
+    check=check_hand_gradient))

@@ -14,7 +14,7 @@ Here:
   every stage; `search_beyond` searches settings a first tuning left alone, from its choice. A
   method's stage is one `sweep.run_sweep` program (`sweep_stage`), its score a function of the
   records (`final_return`, `final_success`; `by_score`, `by_success` order them). A study
-  whose settings are not the preset's tuned ones (`config.METHOD_PRESETS`) applies them over the
+  whose settings are not the preset's tuned ones (`Method.presets`) applies them over the
   preset's own fields (`preset_own`), as explicit overrides: nothing here changes the config
   module.
 * Held-out runs: one method alone through `reproduce.reproduce` with explicit overrides
@@ -38,7 +38,6 @@ credit each policy with one update of experience it had not yet used.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import sys
@@ -49,6 +48,7 @@ import numpy as np
 
 from gpguided_jax import checkpoints, reproduce, summaries, sweep
 from gpguided_jax import config as config_lib
+from gpguided_jax import methods as methods_lib
 from gpguided_jax import stats as stats_lib
 
 TUNING_SEEDS = (100, 101)
@@ -108,21 +108,22 @@ def merge_overrides(*overrides: dict) -> dict:
 
 def preset_own(preset: str, method: str) -> dict:
     """The overrides that give `method` the preset's own values of the fields that
-    `config.METHOD_PRESETS[preset][method]` tunes (the preset's field, else the config's default):
+    `method`'s tuned settings on `preset` set (`Method.presets`; the preset's field, else the
+    config's or the method's default):
     a study's settings applied over them do not depend on another study's tuning."""
     own = config_lib.PRESETS[preset]
-    defaults = {f.name: f.default for f in dataclasses.fields(config_lib.TrainConfig)}
+    defaults = config_lib.field_defaults(method)
     out: dict = {}
-    for field in config_lib.METHOD_PRESETS.get(preset, {}).get(method, {}):
+    for field in methods_lib.get(method).presets.get(preset, {}):
         if field in _DISCOUNTS:
             key = next((k for k in _DISCOUNTS if k in own), "discount")
             out[key] = own.get(key, defaults["discount"])
         elif field in own:
             out[field] = own[field]
-        elif field in defaults and defaults[field] is not dataclasses.MISSING:
+        elif field in defaults:
             out[field] = defaults[field]
         else:
-            raise ValueError(f"config.METHOD_PRESETS[{preset!r}][{method!r}] sets {field!r}, "
+            raise ValueError(f"{method}'s preset {preset!r} (Method.presets) sets {field!r}, "
                              "which has no value of the preset's own to return to")
     return out
 
@@ -277,7 +278,7 @@ def sweep_stage(configs: list[dict], score: Callable[[dict], dict], *, method: s
         raise ValueError(f"a sweep's configurations differ in one field, these in {varying}")
     field = varying[0] if varying else None  # None: a stage of one configuration
     common = {k: configs[0][k] for k in fields if k != field}
-    if field is None or field in config_lib.STATIC_FIELDS:
+    if field is None or config_lib.is_static(field):
         # a static field fixes the program: each configuration is its own one-value sweep
         recs = []
         for c in configs:

@@ -37,9 +37,12 @@ from gpguided_jax import stats as stats_lib
 from gpguided_jax import train as train_lib
 
 ALIASES = {"lambda": "age_penalty", "beta": "inverse_temperature", "lr": "learning_rate"}
-# Traced fields that the GP hyperparameter fit does not read: for these the kernel is fitted once per
-# seed and shared by every value (bitwise what each run's own fit would give, at 1/len(values) cost).
-SWEEPABLE_FIELDS = tuple(f for f in config_lib.TRACED_FIELDS if f != "pendulum")
+
+
+def sweepable_fields() -> tuple[str, ...]:
+    """The scalar traced fields, and every method's traced settings by their flat names."""
+    return tuple(f for f in config_lib.TRACED_FIELDS if f != "pendulum") + \
+        config_lib.setting_names("traced")
 
 
 def _log(msg: str) -> None:
@@ -54,21 +57,22 @@ def resolve_param(name: str) -> str:
     """
     field = ALIASES.get(name, name)
     aliases = ", ".join(f"{a}->{f}" for a, f in ALIASES.items())
-    if field in config_lib.STATIC_FIELDS:
+    sweepable = sweepable_fields()
+    if config_lib.is_static(field):
         raise ValueError(
             f"cannot sweep {name!r}: TrainConfig.{field} is a static field (it fixes shapes or the "
             "compiled program), so each value would need its own program; run one `gpguided "
-            f"reproduce`/`make_train` per value instead. Sweepable fields: {', '.join(SWEEPABLE_FIELDS)}"
+            f"reproduce`/`make_train` per value instead. Sweepable fields: {', '.join(sweepable)}"
         )
     if field == "pendulum":
         raise ValueError(
             "cannot sweep 'pendulum': TrainConfig.pendulum is a structure of physics parameters, "
-            "not one number; sweep a scalar traced field instead: " + ", ".join(SWEEPABLE_FIELDS)
+            "not one number; sweep a scalar traced field instead: " + ", ".join(sweepable)
         )
-    if field not in SWEEPABLE_FIELDS:
+    if field not in sweepable:
         raise ValueError(
             f"unknown TrainConfig field {name!r}; sweepable (traced) fields: "
-            f"{', '.join(SWEEPABLE_FIELDS)} (aliases: {aliases})"
+            f"{', '.join(sweepable)} (aliases: {aliases})"
         )
     return field
 
@@ -161,6 +165,9 @@ def run_sweep(
       `SweepResult`.
     """
     field = resolve_param(param)
+    owner = methods.setting_owners().get(field)
+    if owner is not None and owner != method:
+        raise ValueError(f"cannot sweep {field!r} for {method}: it is a setting of {owner}")
     values = [float(v) for v in values]
     seeds = [int(s) for s in seeds]
     if not values:

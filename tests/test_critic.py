@@ -305,7 +305,7 @@ def test_with_no_critic_steps_it_is_gp_pg_bit_for_bit(critic_registered):
     cfgs["window"] = cfgs[2].replace(critic_window=2)
     progs = {k: T.make_program(c) for k, c in cfgs.items()}
     state = T.initial_state(progs[0], jax.random.PRNGKey(4), cfgs[0], prior)
-    assert state.method_state == () and critic.init(progs["window"], None, None).weights.sum() == 0
+    assert state.method_state == () and critic.init(progs["window"], None, cfgs["window"]).weights.sum() == 0
 
     @jax.jit
     def updates(state):

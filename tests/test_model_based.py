@@ -45,7 +45,7 @@ def _predict(model, xs):
 def _fast_variance(model, xs):
     """The variance the optimistic roll-outs use (`fast_variance`, from explicit factors)."""
     factors = MB.variance_factors(model)
-    return jax.vmap(lambda x: MB.fast_variance(model, factors, MB._k_star(model, x)))(xs)
+    return jax.vmap(lambda x: MB.fast_variance(model, factors, MB.k_star(model, x)))(xs)
 
 
 KERN = dict(ls=np.array([0.9, 1.3, 0.7]), sf2=1.7, sn2=0.05)
@@ -334,7 +334,7 @@ def test_a_learned_reward_predicts_the_stated_one_on_transitions_it_has_not_seen
     refit = jax.jit(MB.refit, static_argnames=("subset_size", "num_steps"))
     data = data._replace(log_kernels=refit(jax.random.key(13), data, subset_size=200,
                                            num_steps=200, first=True))
-    model, mean = jax.jit(MB.build, static_argnums=1)(data, cfg.model_inducing)
+    model, mean = jax.jit(MB.build, static_argnums=1)(data, cfg.settings.inducing)
     mu, var = jax.jit(jax.vmap(lambda x: MB.predict(model, x)))(xs[unseen])
     learned = np.asarray(mu[:, -1] + mean[-1], np.float64)
     sd = np.sqrt(np.asarray(var[:, -1], np.float64) + float(model.kernels.noise_variance[-1]))
@@ -364,7 +364,7 @@ def _pendulum_model():
     refit = jax.jit(MB.refit, static_argnames=("subset_size", "num_steps"))
     data = data._replace(log_kernels=refit(jax.random.key(5), data, subset_size=100,
                                            num_steps=30, first=True))
-    model, mean = jax.jit(MB.build, static_argnums=1)(data, cfg.model_inducing)
+    model, mean = jax.jit(MB.build, static_argnums=1)(data, cfg.settings.inducing)
     return cfg, prog, data, model, mean
 
 

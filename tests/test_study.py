@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from gpguided_jax import config as C
-from gpguided_jax import study
+from gpguided_jax import methods, study
 
 matplotlib.use("Agg")
 
@@ -119,14 +119,15 @@ def test_merge_overrides_keeps_one_spelling_of_the_discount():
 
 def test_preset_own_undoes_the_tuned_settings_without_changing_them(monkeypatch):
     tuned = {"learning_rate": 0.5, "discount_horizon": 0.05, "hold_time": 0.1, "gp_capacity": 8}
-    monkeypatch.setitem(C.METHOD_PRESETS, "tiny", {"gp_pg": dict(tuned)})
+    presets = methods.get("gp_pg").presets
+    monkeypatch.setitem(presets, "tiny", dict(tuned))
     own = study.preset_own("tiny", "gp_pg")
     # the preset's own gp_capacity, the config's defaults for the rest
     assert own == {"learning_rate": C.TrainConfig.learning_rate, "discount": 0.99,
                    "hold_time": 0.0, "gp_capacity": C.PRESETS["tiny"]["gp_capacity"]}
     assert C.METHOD_PRESETS["tiny"] == {"gp_pg": tuned}
     untuned = C.preset("tiny", method="gp_pg", dtype="float32", **own).to_json_dict()
-    monkeypatch.setitem(C.METHOD_PRESETS, "tiny", {})
+    monkeypatch.delitem(presets, "tiny")
     assert untuned == C.preset("tiny", method="gp_pg", dtype="float32").to_json_dict()
     assert study.preset_own("tiny", "gp_pg") == {}
 

@@ -9,6 +9,7 @@ import types
 import numpy as np
 
 from gpguided_jax import config as config_lib
+from gpguided_jax import methods
 from gpguided_jax import study as study_lib
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -44,7 +45,8 @@ def test_the_study_settings_apply_over_the_presets_own_and_leave_the_preset_alon
     before = json.dumps(config_lib.METHOD_PRESETS, sort_keys=True)
     got = {m: study.study_config(tuning, m, dtype="float32").to_json_dict() for m in study.METHODS}
     assert json.dumps(config_lib.METHOD_PRESETS, sort_keys=True) == before
-    monkeypatch.setitem(config_lib.METHOD_PRESETS, "swingup", {})
+    for m in study.METHODS:  # the preset without any method's tuned settings
+        monkeypatch.delitem(methods.get(m).presets, "swingup", raising=False)
     for m in study.METHODS:
         chosen = tuning["methods"][m]["chosen"]
         assert got[m] == config_lib.preset("swingup", method=m, dtype="float32",

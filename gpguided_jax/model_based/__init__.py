@@ -1,0 +1,75 @@
+"""gp_model: the GP as a model of the task, the controller optimised through simulated roll-outs
+(design: docs/design.md#model).
+
+Where the paper's GP models Q(s, a), this method's GPs model the task's dynamics, as PILCO
+(Deisenroth & Rasmussen 2011) and its particle successors (PIPPS, MC-PILCO) do. The package is
+split where the field splits such a method (nrontsis/PILCO: models, controllers, rewards;
+mbrl-lib: models, planning), each seam a value passed in rather than a branch inside the
+roll-out:
+
+  data          the transitions the model takes in, and its ring buffer;
+  gp            the GP per output: the refit, the conditioning, predictions and drawn functions;
+  objectives    the planning objective (`Objective`: the task's stated reward, or a learnt one);
+  uncertainty   the uses of the model's uncertainty (`Uncertainty`: mean, sample, thompson,
+                optimistic) and the plan of one update's particles;
+  rollout       the particle roll-outs through the model;
+  optimise      the controller's optimisation (`Optimiser`: Adam, L-BFGS);
+  actor         what acts in the real episodes (`Actor`: the learnt controller);
+  method        the method itself: its settings (`ModelSettings`), presets, `init`, `update`.
+
+Importing the package registers the method.
+"""
+
+from gpguided_jax.model_based import actor, data, gp, method, objectives, optimise, rollout, uncertainty
+from gpguided_jax.model_based.actor import Actor
+from gpguided_jax.model_based.data import (
+    ModelData,
+    decision_rewards,
+    decisions,
+    empty_data,
+    next_of,
+    take_in,
+    targets_of,
+    wrap,
+)
+from gpguided_jax.model_based.gp import (
+    JITTER,
+    SparseModel,
+    build,
+    condition,
+    farthest_points,
+    fast_variance,
+    jitter_floor,
+    k_star,
+    predict,
+    refit,
+    sample_weights,
+    variance_factors,
+)
+from gpguided_jax.model_based.method import (
+    RECORDS,
+    ModelSettings,
+    init,
+    learns_reward,
+    plan_steps,
+    update,
+)
+from gpguided_jax.model_based.objectives import Objective, stated_reward
+from gpguided_jax.model_based.optimise import OPTIMISERS, Optimiser
+from gpguided_jax.model_based.optimise import optimise as optimise_controller
+from gpguided_jax.model_based.rollout import simulate
+from gpguided_jax.model_based.uncertainty import USES, Plan, Uncertainty, make_plan
+
+# the names of the uses of the uncertainty and of the optimisers (`ModelSettings`' choices)
+EXPLORATIONS = tuple(USES)
+OPTIMIZERS = tuple(OPTIMISERS)
+
+__all__ = [
+    "EXPLORATIONS", "JITTER", "OPTIMISERS", "OPTIMIZERS", "RECORDS", "USES", "Actor", "ModelData",
+    "ModelSettings", "Objective", "Optimiser", "Plan", "SparseModel", "Uncertainty", "actor",
+    "build", "condition", "data", "decision_rewards", "decisions", "empty_data", "fast_variance",
+    "farthest_points", "gp", "init", "jitter_floor", "k_star", "learns_reward", "make_plan",
+    "method", "next_of", "objectives", "optimise", "optimise_controller", "plan_steps",
+    "predict", "refit", "rollout", "sample_weights", "simulate", "stated_reward", "take_in",
+    "targets_of", "uncertainty", "update", "variance_factors", "wrap",
+]

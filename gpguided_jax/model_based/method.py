@@ -1,0 +1,243 @@
+"""gp_model: the GP as a model of the task, the controller optimised through simulated roll-outs,
+declared as a `methods.Method` with its own settings (design: docs/design.md#model).
+
+Each update of Algorithm 1's loop (steps 1-2 roll out the episodes with the current controller
+and the exploration noise, as for every method) then does three things:
+
+1. **The model takes the transitions in** (`data`): one per decision, into a ring buffer of
+   `capacity`, with a mask for the slots not yet written and for the steps after an episode's end.
+2. **The hyperparameters are refitted** (`gp.refit`) on a random subset of `fit_subset` buffered
+   transitions, `fit_steps` Adam steps warm-started from the previous update's kernels, and the
+   model is conditioned on the buffer (`gp.build`).
+3. **The controller is optimised through the model** (`optimise`): `steps` steps of the optimiser
+   on the mean return of `particles` simulated roll-outs (`rollout.simulate`) of `horizon`
+   seconds from the task's own start distribution (`Task.reset`), with the planning objective
+   (`objectives`: the task's stated reward or a learnt one) and the task's end where it has one
+   (`Task.end_fn`). The gradient is the reparameterised one through the roll-outs (autodiff),
+   with common random numbers: the particles' start states and the model's samples are drawn
+   once per update (`uncertainty.make_plan`, under the settings' use of the uncertainty).
+
+The actor (`actor.LEARNT_CONTROLLER`) then acts with the optimised controller in the next
+update's episodes.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from gpguided_jax import config, exploration, hyperfit, methods, rollouts, tasks
+from gpguided_jax import settings as settings_lib
+from gpguided_jax.model_based import objectives, uncertainty
+from gpguided_jax.model_based.actor import LEARNT_CONTROLLER
+from gpguided_jax.model_based.data import (
+    ModelData,
+    decision_rewards,
+    decisions,
+    empty_data,
+    take_in,
+    targets_of,
+)
+from gpguided_jax.model_based.gp import build, predict, refit
+from gpguided_jax.model_based.optimise import OPTIMISERS, optimise
+
+RECORDS = ("model_return", "model_gain", "model_error", "model_reward_error", "model_std",
+           "model_lengthscale_action", "model_data")
+ACTOR = LEARNT_CONTROLLER
+
+
+@settings_lib.declare(static=("capacity", "inducing", "fit_subset", "fit_steps", "particles",
+                              "steps", "horizon", "exploration", "optimizer", "reward"),
+                      prefix="model_")
+class ModelSettings:
+    """gp_model's own settings (flat names `model_<field>`).
+
+    Static:
+      capacity: transitions kept in the ring buffer (at most the run's decisions).
+      inducing: inducing inputs of each output's sparse GP.
+      fit_subset: the refit's random subset of the buffer.
+      fit_steps: the refit's Adam steps per update.
+      particles: simulated particles per update.
+      steps: optimiser steps on the simulated return per update.
+      horizon: the simulated roll-outs' horizon, seconds.
+      exploration: the use of the model's uncertainty in them (`uncertainty.USES`: 'mean',
+        'sample', 'thompson', 'optimistic').
+      optimizer: the controller's optimiser (`optimise.OPTIMISERS`: 'adam', 'lbfgs').
+      reward: where the planning objective's reward comes from (`objectives.REWARDS`): 'stated'
+        (the task's `reward_fn`), 'learned' (one more GP output, learnt with the dynamics), or
+        'auto' (stated where the task states it, learned otherwise).
+
+    Traced:
+      learning_rate: Adam's step size on the simulated return.
+      beta: the confidence multiple of the hallucinated control ('optimistic').
+      end_softness: the smoothing of a task's end in the simulated roll-outs (the temperature of
+        the end's probability, in units of the observation's normalisation scale).
+    """
+
+    capacity: int = 4000
+    inducing: int = 200
+    fit_subset: int = 300
+    fit_steps: int = 50
+    particles: int = 16
+    steps: int = 100
+    horizon: float = 4.0
+    exploration: str = "mean"
+    optimizer: str = "adam"
+    reward: str = "auto"
+    learning_rate: Any = 0.01
+    beta: Any = 1.0
+    end_softness: Any = 0.1
+
+    def check(self, cfg) -> None:
+        """Raises `settings.SettingError` naming the first setting that makes no sense."""
+        flat = type(self).FLAT
+        for f, choices, what in (("exploration", tuple(uncertainty.USES), "model exploration"),
+                                 ("optimizer", tuple(OPTIMISERS), "model optimiser"),
+                                 ("reward", objectives.REWARDS, "model reward")):
+            settings_lib.choice(flat[f], getattr(self, f), choices, what)
+        for f in ("capacity", "inducing", "fit_subset", "fit_steps", "particles", "steps"):
+            settings_lib.integer(flat[f], getattr(self, f), 1)
+        settings_lib.seconds(flat["horizon"], self.horizon)
+        settings_lib.traced(flat["learning_rate"], self.learning_rate, positive=True)
+        settings_lib.traced(flat["end_softness"], self.end_softness, positive=True)
+        settings_lib.traced(flat["beta"], self.beta, non_negative=True)
+        if self.reward == "stated" and tasks.make_task(cfg.env).reward_fn is None:
+            settings_lib.fail(flat["reward"], f"'stated' plans with the task's reward as a "
+                              f"function of the transition, which {cfg.env} does not state "
+                              f"(tasks.Task.reward_fn); 'learned' or 'auto' learns it")
+
+
+# The settings gp_model was tuned to, per preset (`Method.presets`): experiments/model_study.py,
+# its budget in updates of one episode, its base settings and tuned ones (docs/model_based.md).
+PRESETS = {
+    # 10 episodes, decisions held 0.1 s
+    "swingup": {"episodes_per_update": 1, "hold_time": 0.1, "init_log_std": math.log(2.0),
+                "min_std": 0.05, "eval_episodes": 10, "model_horizon": 6.0, "num_updates": 11,
+                "model_exploration": "thompson"},
+    # 2,000 steps
+    "pendulum-v1": {"episodes_per_update": 1, "num_updates": 11, "init_log_std": 0.0,
+                    "min_std": 0.05, "eval_episodes": 10, "model_exploration": "thompson",
+                    "model_horizon": 2.0, "model_learning_rate": 0.03, "model_steps": 200,
+                    "model_inducing": 400},
+    # 10 episodes, decisions held 5 steps
+    "mountaincar-continuous": {"episodes_per_update": 1, "hold_time": 5.0, "init_log_std": 0.0,
+                               "min_std": 0.05, "eval_episodes": 5, "model_horizon": 200.0,
+                               "model_end_softness": 1.0, "num_updates": 11,
+                               "model_exploration": "thompson"},
+    # restarted episodes, 6,000 steps
+    "inverted-pendulum": {"episodes_per_update": 1, "num_updates": 7, "episode_end": "restart",
+                          "init_log_std": math.log(0.5), "min_std": 0.05, "eval_episodes": 5,
+                          "model_capacity": 3000, "model_horizon": 4.0,
+                          "model_exploration": "sample"},
+    # 6,000 steps
+    "inverted-double-pendulum": {"episodes_per_update": 1, "num_updates": 7,
+                                 "episode_end": "restart", "init_log_std": math.log(0.5),
+                                 "min_std": 0.05, "eval_episodes": 5, "model_capacity": 3000,
+                                 "model_horizon": 4.0, "model_exploration": "optimistic"},
+}
+
+
+def learns_reward(task, cfg) -> bool:
+    """Whether gp_model learns the task's reward under `cfg`'s settings (`ModelSettings.reward`)."""
+    return objectives.for_task(task, cfg.settings.reward).learned
+
+
+def plan_steps(prog, cfg) -> int:
+    """The simulated roll-outs' steps: the settings' `horizon` seconds in decisions of `prog.hold`
+    control intervals."""
+    dt = config.control_interval(prog.config) * prog.hold
+    return max(1, int(round(cfg.settings.horizon / dt)))
+
+
+def _relative_error(pred, target, valid):
+    """sum (pred - target)^2 / sum target^2 over the valid rows (1 - R^2 about 0)."""
+    w = valid.reshape(valid.shape + (1,) * (target.ndim - 1))
+    err = jnp.sum((pred - target) ** 2 * w)
+    return err / jnp.maximum(jnp.sum(target ** 2 * w), jnp.finfo(target.dtype).tiny)
+
+
+def init(prog, key, cfg) -> ModelData:
+    """The empty buffer: room for the run's decisions, at most the settings' `capacity`."""
+    del key
+    task, static, own = prog.task, prog.config, cfg.settings
+    capacity = min(own.capacity, static.num_updates * static.episodes_per_update
+                   * (static.episode_length // prog.hold))
+    zeros = prog.controller.init(prog.dtype)
+    hallucination = jax.tree_util.tree_map(lambda a: jnp.zeros((task.obs_dim,) + a.shape, a.dtype), zeros)
+    outputs = task.obs_dim + learns_reward(task, cfg)
+    return empty_data(capacity, task.feature_dim, outputs, prog.dtype, hallucination)
+
+
+def update(prog, cfg, state, batch):
+    """Steps 3-4 of gp_model: take in, refit, condition, optimise (module notes)."""
+    task, own = prog.task, cfg.settings
+    objective = objectives.for_task(task, own.reward)
+    use = uncertainty.get(own.exploration)
+    data: ModelData = state.method_state
+    eps = batch.episodes
+    obs, nxt, acts = eps.states, eps.next_states, eps.actions
+    obs, nxt, acts, valid = decisions(prog.hold, obs, nxt, acts, eps.alive, eps.ends)
+    d, e = task.feature_dim, task.obs_dim
+    xs = jax.vmap(lambda s, a: rollouts.features(prog, s, a))(obs, acts).reshape(-1, d)
+    ys = targets_of(task, obs, nxt).reshape(-1, e)
+    rewards = decision_rewards(prog.hold, eps.rewards).reshape(-1)
+    valid = valid.reshape(-1)
+    if objective.learned:
+        ys = jnp.concatenate([ys, rewards[:, None]], axis=1)
+    key = jax.random.fold_in(state.key, 7)
+    k_fit, k_plan, _ = jax.random.split(key, 3)
+
+    # the model's error on this update's transitions before it takes them in (data it has not
+    # seen; 1 on the first update, whose model is the prior: its prediction is 0), and the
+    # objective's reward's on them (the learnt one's before it takes them in, or the stated one's)
+    first = data.count == 0
+    model_old, mean_old = build(data, own.inducing)
+    pred = jax.vmap(lambda x: predict(model_old, x)[0])(xs) + mean_old
+    model_error = _relative_error(pred[:, :e], ys[:, :e], valid)
+    flat = lambda v: v.reshape((-1,) + v.shape[2:])  # noqa: E731
+    o, a, n = flat(obs), flat(acts), flat(nxt)
+    end = None if task.end_fn is None else jax.vmap(task.end_fn)(n).astype(o.dtype)
+    reward_pred = jax.vmap(lambda *args: objective.reward(task, prog.hold, *args))(o, a, n, end, pred)
+    model_reward_error = _relative_error(reward_pred, rewards, valid)
+
+    data = take_in(data, xs, ys, valid)
+    data = data._replace(log_kernels=refit(k_fit, data, subset_size=own.fit_subset,
+                                           num_steps=own.fit_steps, first=first))
+    model, target_mean = build(data, own.inducing)
+    plan = uncertainty.make_plan(prog, cfg, model, k_plan, use, own.particles, plan_steps(prog, cfg))
+    params, halluc, before, after = optimise(
+        prog, model, target_mean, plan, state.theta.controller, data.hallucination,
+        num_steps=own.steps, learning_rate=own.learning_rate, beta=own.beta,
+        optimistic=use.hallucinates, optimizer=own.optimizer, end_softness=own.end_softness,
+        objective=objective)
+    data = data._replace(hallucination=halluc)
+    theta = ACTOR.act_with(prog, cfg, state.theta, params)
+    kern = jax.vmap(hyperfit.from_log)(data.log_kernels)
+    records = dict(
+        model_return=after,
+        model_gain=after - before,
+        model_error=model_error,
+        model_reward_error=model_reward_error,
+        model_std=jnp.mean(jnp.sqrt(kern.noise_variance[:e])),
+        model_lengthscale_action=jnp.exp(jnp.mean(jnp.log(kern.lengthscales[:e, -1]))),
+        model_data=jnp.sum(data.valid).astype(prog.dtype),
+    )
+    return theta, state.opt_state, data, {k: jnp.asarray(v, prog.dtype) for k, v in records.items()}
+
+
+def check(cfg) -> None:
+    """A hold no longer than an episode: the model is of one decision."""
+    hold = exploration.hold_steps(cfg.hold_time, config.control_interval(cfg))
+    if hold > cfg.episode_length:
+        raise ValueError(f"TrainConfig.hold_time: a hold of {hold} control steps is longer than "
+                         f"the episode ({cfg.episode_length}); gp_model models one decision")
+
+
+methods.register(methods.Method(
+    name="gp_model", policy=ACTOR.policy, prior="none", init=init, update=update, records=RECORDS,
+    explorations=("white", "ou", "coloured"), compare_with=("reinforce", "gp_pg"), check=check,
+    explain_exploration="'parameter' noise changes the controller the model optimises",
+    eval_held=True, settings=ModelSettings, presets=PRESETS))
