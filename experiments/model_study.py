@@ -118,9 +118,11 @@ def base(task: str) -> dict:
     `GRIDS[task]`) and the budget's updates, and where the search starts in those (`START`)."""
     searched = {p for params, _ in GRIDS[task]
                 for p in (params if isinstance(params, (tuple, list)) else (params,))}
+    start = START.get(task, {})
     preset = config_lib.METHOD_PRESETS[task][METHOD]
-    fixed = {k: v for k, v in preset.items() if k not in searched and k != "num_updates"}
-    return {**fixed, **START.get(task, {})}
+    kept = {k: start.get(k, v) for k, v in preset.items()
+            if k in start or (k not in searched and k != "num_updates")}
+    return {**kept, **start}
 
 
 BASE = {task: base(task) for task in TASKS}
