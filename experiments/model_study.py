@@ -47,8 +47,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-import gpguided_jax  # noqa: E402
-from gpguided_jax import baselines, exploration, model_based, runtime, stats, study, tasks  # noqa: E402
+from gpguided_jax import baselines, exploration, model_based, stats, study, tasks  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -348,11 +347,7 @@ def main(argv=None) -> int:
     p.add_argument("--reward", choices=("stated", "learned"), default="stated",
                    help="heldout: the task's stated reward (default) or one the model learns")
     args = p.parse_args(argv)
-    runtime.single_threaded_lapack()
-    runtime.set_compile_cache(runtime.DEFAULT_COMPILE_CACHE)
-    gpguided_jax.enable_x64()
-    out = args.out or os.path.join(ROOT, "docs", "results", "model", args.task)
-    os.makedirs(out, exist_ok=True)
+    out = study.set_up(args.out or os.path.join(ROOT, "docs", "results", "model", args.task))
     if args.stage == "tune":
         tune(args.task, out)
     elif args.stage == "heldout":

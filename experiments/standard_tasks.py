@@ -58,8 +58,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-import gpguided_jax  # noqa: E402
-from gpguided_jax import baselines, checkpoints, methods, runtime, study, summaries, tasks  # noqa: E402
+from gpguided_jax import baselines, checkpoints, methods, study, summaries, tasks  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
 from gpguided_jax import stats as stats_lib  # noqa: E402
 
@@ -447,11 +446,7 @@ def main(argv=None) -> int:
                 "for their method")
     if args.stage == "targets" and args.task not in TARGET_GRIDS:
         p.error(f"targets: the grid covers {', '.join(TARGET_GRIDS)}")
-    runtime.single_threaded_lapack()
-    runtime.set_compile_cache(runtime.DEFAULT_COMPILE_CACHE)
-    gpguided_jax.enable_x64()
-    out = args.out or os.path.join(ROOT, "docs", "results", "standard", args.task)
-    os.makedirs(out, exist_ok=True)
+    out = study.set_up(args.out or os.path.join(ROOT, "docs", "results", "standard", args.task))
     if args.stage == "tune":
         tune(args.task, out, args.only)
     elif args.stage == "targets":

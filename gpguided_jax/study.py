@@ -51,9 +51,10 @@ from typing import Callable, Iterable, NamedTuple, Sequence
 
 import numpy as np
 
-from gpguided_jax import baselines, checkpoints, reproduce, summaries, sweep
+from gpguided_jax import baselines, checkpoints, reproduce, runtime, summaries, sweep
 from gpguided_jax import config as config_lib
 from gpguided_jax import stats as stats_lib
+from gpguided_jax._x64 import enable_x64
 
 TUNING_SEEDS = (100, 101)
 HELDOUT_SEEDS = tuple(range(1000, 1010))
@@ -67,6 +68,17 @@ def log(msg: str) -> None:
 
 def _silent(msg: str) -> None:
     del msg
+
+
+def set_up(out: str) -> str:
+    """A float64 study stage's process, before its first run: LAPACK single-threaded
+    (`runtime.single_threaded_lapack`), the persistent compile cache, JAX's 64-bit mode; and its
+    output directory `out`, created. Returns `out`."""
+    runtime.single_threaded_lapack()
+    runtime.set_compile_cache(runtime.DEFAULT_COMPILE_CACHE)
+    enable_x64()
+    os.makedirs(out, exist_ok=True)
+    return out
 
 
 # ------------------------------------------------------------------------------------------ files

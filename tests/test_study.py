@@ -260,6 +260,16 @@ def test_run_baseline_runs_each_seed_with_the_methods_budget(monkeypatch):
         "success": 0.75, "reward": -1.5}
 
 
+def test_set_up_prepares_a_float64_stage_and_its_directory(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(study.runtime, "single_threaded_lapack", lambda: calls.append("lapack"))
+    monkeypatch.setattr(study.runtime, "set_compile_cache", lambda d: calls.append(("cache", d)))
+    monkeypatch.setattr(study, "enable_x64", lambda: calls.append("x64"))
+    out = str(tmp_path / "a" / "b")
+    assert study.set_up(out) == out and (tmp_path / "a" / "b").is_dir()
+    assert calls == ["lapack", ("cache", study.runtime.DEFAULT_COMPILE_CACHE), "x64"]
+
+
 def test_record_result_adds_one_name(tmp_path):
     path = str(tmp_path / "tuning.json")
     study.record_result(path, {"seeds": [100, 101]}, "ppo", {"chosen": {"lr": 1}})
