@@ -330,6 +330,13 @@ def budget_note(algorithm: str, budget: int, num_evals: int,
     return f"{how}: a budget of {int(budget)} runs {run} steps"
 
 
+def _quiet_brax() -> None:
+    """Imports brax through `brax_env`, which keeps the note mujoco's import prints (its GPU
+    backend is missing) off stdout, where the commands write their output: call it before
+    importing brax's trainers."""
+    from gpguided_jax import brax_env  # noqa: F401
+
+
 def train_ppo(
     pendulum_params: pendulum.PendulumParams,
     num_timesteps: int,
@@ -355,6 +362,7 @@ def train_ppo(
       hidden_layers: hidden sizes of both the policy and the value MLP.
       **ppo_kwargs: overrides of `PPO_DEFAULTS` or further `ppo.train` arguments.
     """
+    _quiet_brax()
     from brax.training.agents.ppo import networks as ppo_networks
     from brax.training.agents.ppo import train as ppo
 
@@ -387,6 +395,7 @@ def train_sac(
     scale sets how much the reward weighs against that entropy. Hyperparameters: `SAC_DEFAULTS`.
     The budget must exceed the replay buffer's prefill (`smallest_budget`; `BudgetError`
     otherwise, before brax compiles anything), and brax rounds it up (`evaluation_steps`)."""
+    _quiet_brax()
     from brax.training.agents.sac import networks as sac_networks
     from brax.training.agents.sac import train as sac
 
@@ -466,6 +475,7 @@ def train_on_task(algorithm: str, env: str, num_timesteps: int, episode_length: 
       hidden_layers: hidden sizes of every MLP.
       **kwargs: overrides of `PPO_DEFAULTS` / `SAC_DEFAULTS`, or further `train` arguments.
     """
+    _quiet_brax()
     if algorithm == "ppo":
         from brax.training.agents.ppo import networks as nets
         from brax.training.agents.ppo import train as trainer
