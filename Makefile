@@ -1,8 +1,9 @@
 # Two commands for a fresh machine with only python3 and make:
 #   make run    the main job: the paper's Fig. 5 reproduction (4 methods x 100 seeds, float64)
 #   make test   the test suite
-# make results regenerates the result files of the documentation's tables (docs/results/);
-# make docs builds the documentation site into site/.
+# make results regenerates the result files of the documentation's tables (docs/results/), make
+# figures the figures', and each study has its own target: make swingup, make standard, make
+# exploration and make model; make docs builds the documentation site into site/.
 # Every target creates the virtual environment in .venv on first use from the pinned lock file.
 
 VENV ?= .venv
@@ -14,7 +15,7 @@ SEEDS ?= 100
 SEED_START ?= 1000
 CONSISTENCY_SEEDS := $(shell seq $(SEED_START) $$(($(SEED_START) + 9)))
 
-.PHONY: run results figures swingup standard exploration demo test lint bench docs clean-venv
+.PHONY: run results figures swingup standard exploration model demo test lint bench docs clean-venv
 
 $(STAMP): pyproject.toml requirements.lock
 	python3 -m venv $(VENV)
@@ -94,6 +95,25 @@ exploration: $(STAMP)
 	$(PY) experiments/exploration_study.py standard --task mountaincar-continuous
 	$(PY) experiments/exploration_study.py standard-tune --task pendulum-v1
 	$(PY) experiments/exploration_study.py standard --task pendulum-v1
+	$(PY) experiments/docs_tables.py --write
+
+# The GP-model study (docs/model_based.md): tuning on seeds 100-101, then the held-out seeds under
+# each of the model's exploration choices for each task of MODEL_TASKS, and with the reward learnt
+# by the model (under Thompson sampling, the choice its tuning made there) for each of
+# MODEL_LEARNED; then each task's table and figure. It resumes, as `standard` does: a tuning
+# configuration in tuning_runs.json, or a held-out run whose heldout/<name>.json holds the same
+# seeds and settings, is not run again.
+MODEL_TASKS ?= pendulum-v1 mountaincar-continuous inverted-pendulum inverted-double-pendulum swingup
+MODEL_LEARNED ?= pendulum-v1 mountaincar-continuous swingup
+model: $(STAMP)
+	for t in $(MODEL_TASKS); do \
+	  $(PY) experiments/model_study.py tune --task $$t && \
+	  $(PY) experiments/model_study.py heldout --task $$t || exit 1; \
+	done
+	for t in $(MODEL_LEARNED); do \
+	  $(PY) experiments/model_study.py heldout --task $$t --only thompson --reward learned || exit 1; \
+	done
+	for t in $(MODEL_TASKS); do $(PY) experiments/model_study.py report --task $$t || exit 1; done
 	$(PY) experiments/docs_tables.py --write
 
 demo: $(STAMP)

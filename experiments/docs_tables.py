@@ -12,6 +12,10 @@ what its files give, so a number in a documentation table is always the number i
 names. A block may appear in several documents (the Fig. 5 table is in the README and on the
 results page).
 
+A block holds its table and a short caption of what its files give (seeds, budgets, thresholds,
+its source; `_caption`); the prose that says what the table's columns measure stands in the page
+beside the block, and carries no number of its own.
+
 Usage:
   python experiments/docs_tables.py --write     # after regenerating result files (make results)
   python experiments/docs_tables.py --check
@@ -27,6 +31,8 @@ import math
 import os
 import re
 import sys
+
+from gpguided_jax.baselines import NAMES as BASELINES
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RESULTS = os.path.join(ROOT, "docs", "results")
@@ -48,6 +54,28 @@ def _source(*paths: str, folder: str = "docs/results") -> str:
     return "Source: " + ", ".join(f"`{folder}/{p}`" for p in paths) + "."
 
 
+# a word that would open a list, a quote or a heading at the start of a line
+_OPENS_BLOCK = re.compile(r"(?:[-+*]|#{1,6}|\d{1,9}[.)]|>.*)$")
+
+
+def _caption(*parts: str, width: int = 100) -> str:
+    """A table's generated caption: `parts` (sentences of what its files give, and its source)
+    as one paragraph in lines of at most `width` characters, a code span never broken and no line
+    opening a Markdown block."""
+    words = re.findall(r"(?:[^\s`]|`[^`]*`)+", " ".join(p for p in parts if p))
+    lines = [""]
+    for word in words:
+        if lines[-1] and len(lines[-1]) + 1 + len(word) > width and not _OPENS_BLOCK.match(word):
+            lines.append(word)
+        else:
+            lines[-1] = f"{lines[-1]} {word}".lstrip()
+    return "\n".join(lines)
+
+
+def _seed_range(seeds) -> str:
+    return f"{seeds[0]}–{seeds[-1]}"
+
+
 def fig5_table(run: str = "paper_float64") -> str:
     rows = _rows(f"{run}/summary.csv")
     lines = ["| method | final, IQM | 95% CI (stratified bootstrap) | final, mean | 95% CI (t) | "
@@ -60,9 +88,8 @@ def fig5_table(run: str = "paper_float64") -> str:
             f"{f['initial_mean']:.3f} | {f['updates_to_90pct']:.0f} |")
     seeds = int(rows[0]["seeds"])
     zero = float(rows[0]["zero_torque_reward"])
-    lines.append("")
-    lines.append(f"{seeds} seeds per method; zero-torque policy: {zero:.3f} per step. "
-                 + _source(f"{run}/summary.csv"))
+    lines += ["", _caption(f"{seeds} seeds per method; zero-torque policy: {zero:.3f} per step.",
+                           _source(f"{run}/summary.csv"))]
     return "\n".join(lines)
 
 
@@ -72,8 +99,7 @@ def improvement_table(run: str = "paper_float64") -> str:
     for r in rows:
         lines.append(f"| {r['x']} | {r['y']} | {float(r['p_improvement']):.2f} | "
                      f"[{float(r['ci95_low']):.2f}, {float(r['ci95_high']):.2f}] |")
-    lines.append("")
-    lines.append(_source(f"{run}/comparisons.csv"))
+    lines += ["", _caption(_source(f"{run}/comparisons.csv"))]
     return "\n".join(lines)
 
 
@@ -89,8 +115,7 @@ def failures_table(runs=("paper_float64", "paper_float32")) -> str:
             dtype = run.rsplit("_", 1)[-1]
             cells = " | ".join(r[f"fail_{c}"] for c in FAILURE_CAUSES)
             lines.append(f"| {m} | {dtype} | {r['seeds']} | {cells} | {r['failing_seeds']} |")
-    lines.append("")
-    lines.append(_source(*(f"{run}/summary.csv" for run in runs)))
+    lines += ["", _caption(_source(*(f"{run}/summary.csv" for run in runs)))]
     return "\n".join(lines)
 
 
@@ -112,8 +137,7 @@ def consistency_table() -> str:
             f"{d['max_abs_final_diff']:.4f} | {d['iqm_f64']:.3f} [{d['iqm_ci_f64'][0]:.3f}, "
             f"{d['iqm_ci_f64'][1]:.3f}] | {d['iqm_f32']:.3f} [{d['iqm_ci_f32'][0]:.3f}, "
             f"{d['iqm_ci_f32'][1]:.3f}] |")
-    lines.append("")
-    lines.append(_source("consistency/consistency.json"))
+    lines += ["", _caption(_source("consistency/consistency.json"))]
     return "\n".join(lines)
 
 
@@ -127,13 +151,12 @@ def coverage_table() -> str:
     for r in c["summary"]:
         lines.append(f"| {r['method']} | {100 * r['coverage_mean']:.2f}% | "
                      f"[{100 * r['ci95_low']:.2f}, {100 * r['ci95_high']:.2f}]% | {r['cells_mean']:.1f} |")
-    lines.append("")
-    lines.append(f"Grid {g['num_angle_bins']} × {g['num_velocity_bins']} over φ ∈ [0, 2π), "
-                 f"ω ∈ [−{g['max_velocity']:g}, {g['max_velocity']:g}] rad/s; mean and 95% CI over "
-                 f"{len(c['seeds'])} seeds ({c['seeds'][0]}–{c['seeds'][-1]}), "
-                 f"{c['eval_episodes_per_checkpoint']} roll-outs after every "
-                 f"{c['checkpoints_at_updates'][0]} updates. "
-                 + _source("coverage.json", folder="docs/figures"))
+    lines += ["", _caption(
+        f"Grid {g['num_angle_bins']} × {g['num_velocity_bins']} over φ ∈ [0, 2π), "
+        f"ω ∈ [−{g['max_velocity']:g}, {g['max_velocity']:g}] rad/s; mean and 95% CI over "
+        f"{len(c['seeds'])} seeds ({_seed_range(c['seeds'])}), "
+        f"{c['eval_episodes_per_checkpoint']} roll-outs after every "
+        f"{c['checkpoints_at_updates'][0]} updates.", _source("coverage.json", folder="docs/figures"))]
     return "\n".join(lines)
 
 
@@ -145,8 +168,7 @@ def fig1_table() -> str:
              "|---" * (len(columns) + 1) + "|"]
     lines.append(f"| mean share over the {len(rows)} improvements | " + " | ".join(
         f"{sum(float(r[k]) for r in rows) / len(rows):.1f}%" for k in columns) + " |")
-    lines.append("")
-    lines.append(_source("fig1_bv_composition.csv", folder="docs/figures"))
+    lines += ["", _caption(_source("fig1_bv_composition.csv", folder="docs/figures"))]
     return "\n".join(lines)
 
 
@@ -159,8 +181,7 @@ def _sweep_table(name: str, label: str) -> str:
         lines.append(f"| {float(r[param]):g} | {float(r['final_mean']):.3f} | "
                      f"[{float(r['ci95_low']):.3f}, {float(r['ci95_high']):.3f}] | "
                      f"{float(r['updates_to_90pct']):.0f} | {100 * float(r['fresh_bv_share_mean']):.1f}% |")
-    lines.append("")
-    lines.append(f"{rows[0]['seeds']} seeds per value. " + _source(name, folder="docs/figures"))
+    lines += ["", _caption(f"{rows[0]['seeds']} seeds per value.", _source(name, folder="docs/figures"))]
     return "\n".join(lines)
 
 
@@ -181,9 +202,8 @@ def gradient_check_table() -> str:
     for r in g["rows"]:
         lines.append(f"| {r['policy']} | {r['equation']} | {r['controller']} | {r['max_vs_grad']:.1e} | "
                      f"{r['median_vs_grad']:.1e} | {r['max_vs_jacfwd']:.1e} |")
-    lines.append("")
-    lines.append(f"Relative difference max\\|hand − autodiff\\| / max\\|autodiff\\| over {g['cases']} "
-                 f"random cases per row, {g['dtype']}. " + _source("gradient_check.json"))
+    lines += ["", _caption(f"{g['cases']} random cases per row, {g['dtype']}.",
+                           _source("gradient_check.json"))]
     return "\n".join(lines)
 
 
@@ -239,8 +259,8 @@ def bench_table() -> str:
     lines.append("| pendulum steps per second, "
                  + " / ".join(k.removeprefix("episodes_") for k, _ in e) + " vmapped episodes | "
                  + " / ".join(f"{v['steps_per_s'] / 1e6:.2f} M" for _, v in e) + " |")
-    lines.append("")
-    lines.append(f"{b['cpu_count']} CPU cores, jax {b['jax']}, {b['dtype']}. " + _source("bench.json"))
+    lines += ["", _caption(f"{b['cpu_count']} CPU cores, jax {b['jax']}, {b['dtype']}.",
+                           _source("bench.json"))]
     return "\n".join(lines)
 
 
@@ -270,11 +290,10 @@ def scaling_table() -> str:
                          + f" | {r['peak_rss_bytes'] / 2**30:.2f} | {r['device_bytes_max'] / 2**20:.0f} | "
                          + ("all 400" if timed >= 400 else f"{timed} (extrapolated)") + " |")
     batch = dict(runs).get("scaling_vmap", runs[0][1])
-    lines.append("")
-    lines.append(f"Device memory per seed when the seeds run as one batch (slope of XLA's memory "
-                 f"analysis, vmap): {batch['device_bytes_per_seed'] / 2**20:.2f} MiB, so about "
-                 f"{batch['seeds_in_80_GB']:,} seeds fit in 80 GB (an estimate, not measured on a GPU). "
-                 + _source(*(f"{name}/scaling.json" for name, _ in runs)))
+    lines += ["", _caption(
+        f"Device memory per seed when the seeds run as one batch (vmap): "
+        f"{batch['device_bytes_per_seed'] / 2**20:.2f} MiB, so about {batch['seeds_in_80_GB']:,} "
+        "seeds fit in 80 GB.", _source(*(f"{name}/scaling.json" for name, _ in runs)))]
     return "\n".join(lines)
 
 
@@ -296,11 +315,7 @@ def swingup_warm_table() -> str:
         a, b = low[m], tuned[m]
         lines.append(f"| {m} | {a['first_10_updates_success']:.2f} | {a['final_success']:.2f} | "
                      f"{a['final_reward']:.2f} | {b['final_success']:.2f} |")
-    seeds = d["seeds"]
-    lines.append("")
-    lines.append(f"Deterministic success, mean over seeds {seeds[0]}–{seeds[-1]}, each started from the "
-                 "RBF controller fitted to the energy-pumping controller. "
-                 + _source("swingup/diagnostics.json"))
+    lines += ["", _caption(f"Seeds {_seed_range(d['seeds'])}.", _source("swingup/diagnostics.json"))]
     return "\n".join(lines)
 
 
@@ -314,18 +329,15 @@ def swingup_sac_table() -> str:
         lines.append(f"| {r['seed']} | {r['success'][best]:.2f} [{r['env_steps'][best] / 1e3:.0f}k] | "
                      f"{r['success'][-1]:.2f} |")
     s = d["settings"]
-    lines.append("")
-    lines.append(f"brax SAC, discount {s['discounting']:g}, {s['grad_updates_per_step']} gradient steps per "
-                 f"environment step, learning rate {s['learning_rate']:g}, reward scale "
-                 f"{s['reward_scaling']:g}; deterministic success. " + _source("swingup/diagnostics.json"))
+    lines += ["", _caption(
+        f"brax SAC, discount {s['discounting']:g}, {s['grad_updates_per_step']} gradient steps per "
+        f"environment step, learning rate {s['learning_rate']:g}, reward scale "
+        f"{s['reward_scaling']:g}; deterministic success.", _source("swingup/diagnostics.json"))]
     return "\n".join(lines)
 
 
 def _steps(v) -> str:
     return "–" if v is None else f"{v / 1000:.1f}k"
-
-
-BASELINES = ("ppo", "sac")
 
 
 def _rounded_up(budget: int, steps_run: dict[str, int], where: str = "") -> str:
@@ -356,26 +368,12 @@ def standard_table(task: str) -> str:
                      f"{_steps(r['steps_to_threshold_median'])} | {r['seeds_reaching']}/{r['seeds']} | "
                      + (f"{_steps(r['steps_used_median'])} | " if used else "")
                      + f"{r['wall_s']:.0f} s |")
-    seeds = d["seeds"]
     ran = {r["method"]: r["env_steps"] for r in d["rows"] if r["method"] in BASELINES}
-    lines.append("")
-    lines.append(f"Held-out seeds {seeds[0]}–{seeds[-1]}; a budget of {d['budget']:,} environment "
-                 f"steps of learning for every method{_rounded_up(d['budget'], ran)}, and "
-                 f"{d['fit_steps']:,} more for the GP "
-                 "methods' hyperparameter fit (counted in their steps to threshold); threshold "
-                 f"{d['threshold']:g}. Final return: the deterministic policy, last 10% of "
-                 "evaluations per seed. Wall time: all seeds of a method, compilation included, on "
-                 "a 2-core CPU that other runs shared at times (an indication, not a benchmark). "
-                 + ("Environment steps used: a method's learning episodes end when the task ends "
-                    "them, yet each counts its full length against the budget; the steps before "
-                    "the ends, summed (the hyperparameter fit's excluded). " if used else "")
-                 + ("<method>_restart: the same method with the settings tuned for it and "
-                    "`episode_end='restart'`, which restarts an episode that ends in its remaining "
-                    "slots, so that every slot is an environment step, as for PPO and SAC (not "
-                    "tuned that way). " if any(r["method"].endswith("_restart") for r in d["rows"])
-                    else "")
-                 + (f"Published: {d['reference']}. " if d.get("reference") else "")
-                 + _source(path))
+    lines += ["", _caption(
+        f"Held-out seeds {_seed_range(d['seeds'])}; a budget of {d['budget']:,} environment steps of "
+        f"learning for every method{_rounded_up(d['budget'], ran)}, and {d['fit_steps']:,} more for "
+        f"the GP methods' hyperparameter fit; threshold {d['threshold']:g}.",
+        f"Published: {d['reference']}." if d.get("reference") else "", _source(path))]
     return "\n".join(lines)
 
 
@@ -405,15 +403,7 @@ def retune_table(path: str) -> str:
         value = (f"{t['success']:.2f} | {t['reward']:.3f}" if by_success else f"{t['score']:.1f}")
         lines.append(f"| {name} | {value} | {t['unhealthy_seeds']} | "
                      f"{'yes' if t['settings'] == d['chosen'] else ''} |")
-    lines.append("")
-    lines.append(f"Tuning seeds {d['seeds']}; a coordinate search from gp_critic's tuned "
-                 "settings, each stage over the best so far; "
-                 + ("the deterministic policy's success rate and reward per step at the end of "
-                    "the run, means over seeds, ordered by success, then reward" if by_success
-                    else "score: the final return of the deterministic policy (last 10% of "
-                         "evaluations, mean over seeds)")
-                 + "; unhealthy seeds: those whose gradient was ever not finite or whose GP's "
-                 "health check ever fired (that take-in is then undone). " + _source(path))
+    lines += ["", _caption(f"Tuning seeds {d['seeds']}.", _source(path))]
     return "\n".join(lines)
 
 
@@ -429,10 +419,7 @@ def standard_targets_table(task: str) -> str:
         name = "returns-to-go" if s["critic_targets"] == "returns" else "λ-returns"
         lines.append(f"| {name} | {horizon} | {t['score']:.1f} | "
                      f"{'yes' if s == d['chosen'] else ''} |")
-    lines.append("")
-    lines.append(f"Tuning seeds {d['seeds']}; gp_critic at its tuned settings; score: the final "
-                 "return of the deterministic policy (last 10% of evaluations, mean over seeds). "
-                 + _source(path))
+    lines += ["", _caption(f"Tuning seeds {d['seeds']}.", _source(path))]
     return "\n".join(lines)
 
 
@@ -447,11 +434,7 @@ def critic_table(path: str) -> str:
         lines.append(f"| {r['method']} | {r['error_first']:.2f} | {r['error_last']:.2f} | "
                      f"{r['lengthscale_median']:.2f} [{r['lengthscale_min']:.2f}, "
                      f"{r['lengthscale_max']:.2f}] | {r['fraction_last']:.3f} | {r['kl_last']:.3f} |")
-    lines.append("")
-    lines.append(f"Held-out seeds, {d['rows'][0]['seeds']} per method; medians over seeds and "
-                 "updates. Critic error: the GP's mean before it took an update's episodes in, "
-                 "against their returns-to-go (1 is no better than their mean). The action "
-                 "length-scale is in the task's action units. " + _source(path))
+    lines += ["", _caption(f"Held-out seeds, {d['rows'][0]['seeds']} per method.", _source(path))]
     return "\n".join(lines)
 
 
@@ -478,9 +461,9 @@ def standard_tuning_table(task: str) -> str:
         ran = {r["method"]: r["env_steps"] for r in json.load(f)["rows"]
                if r["method"] in BASELINES and r["method"] in d["methods"]}
     note = _rounded_up(d["env_steps"], ran)
-    lines.append("")
-    lines.append(f"Tuning seeds {d['seeds']}, {'a budget of ' if note else ''}{d['env_steps']:,} "
-                 f"environment steps per run{note}. " + _source(path, *([heldout] if note else [])))
+    lines += ["", _caption(f"Tuning seeds {d['seeds']}, {'a budget of ' if note else ''}"
+                           f"{d['env_steps']:,} environment steps per run{note}.",
+                           _source(path, *([heldout] if note else [])))]
     return "\n".join(lines)
 
 
@@ -502,12 +485,8 @@ def exploration_reach_table() -> str:
     for r in d["rows"]:
         lines.append(f"| {r['method']} | {r['scheme']} | {amplitude(r)} | "
                      f"{r['above_horizontal']:.0%} | {r['near_upright']:.0%} |")
-    seeds = d["seeds"]
-    lines.append("")
-    lines.append(f"Share of {d['episodes_per_seed']} episodes per seed (seeds {seeds[0]}–{seeds[-1]}) "
-                 "of each method's initial policy (RBF controller at its initial weights, empty GP) "
-                 "that rise above horizontal, or within 0.3 rad of upright, at some step. "
-                 + _source(path))
+    lines += ["", _caption(f"{d['episodes_per_seed']} episodes per seed, seeds "
+                           f"{_seed_range(d['seeds'])}.", _source(path))]
     return "\n".join(lines)
 
 
@@ -526,13 +505,8 @@ def exploration_tuning_table() -> str:
             lines.append(f"| {name} | {s['scheme']} | {s['discount_horizon']:g} | {rate} | "
                          f"{t['success']:.2f} | {t['reward']:.3f} | "
                          f"{'yes' if s == r['chosen'] else ''} |")
-    lines.append("")
-    lines.append(f"Tuning seeds {d['seeds']} ({d['dtype']}), {d['env_steps']:,} environment steps "
-                 "per run; success and reward per step of the deterministic policy at the end of "
-                 "the run. "
-                 + ("Learning rate, gp_critic: its gp_pg step's, then its surrogate's "
-                    "(`critic_learning_rate`). " if "gp_critic" in d["methods"] else "")
-                 + _source(path))
+    lines += ["", _caption(f"Tuning seeds {d['seeds']} ({d['dtype']}), {d['env_steps']:,} "
+                           "environment steps per run.", _source(path))]
     return "\n".join(lines)
 
 
@@ -557,12 +531,9 @@ def exploration_baseline_tuning_table() -> str:
         with np.load(os.path.join(RESULTS, p)) as f:
             ran[name] = int(f["steps"][-1])
     note = _rounded_up(d["env_steps"], ran, where=", at the chosen settings")
-    lines.append("")
-    lines.append(f"Tuning seeds {d['seeds']}, {'a budget of ' if note else ''}{d['env_steps']:,} "
-                 f"environment steps per run{note}; "
-                 "horizon in seconds (brax's discount exp(−0.005 s / horizon)); success and reward "
-                 "per step of the deterministic policy at the end of the run. "
-                 + _source(path, *(heldout.values() if note else ())))
+    lines += ["", _caption(f"Tuning seeds {d['seeds']}, {'a budget of ' if note else ''}"
+                           f"{d['env_steps']:,} environment steps per run{note}.",
+                           _source(path, *(heldout.values() if note else ())))]
     return "\n".join(lines)
 
 
@@ -593,19 +564,7 @@ def exploration_table() -> str:
                      f"{_steps_cell(r['steps_to_50'], n)} | {_steps_cell(r['steps_to_90'], n)} | "
                      f"{r['final_success']:.2f} | {r['final_reward']:.3f} | {ls} | "
                      f"{r['wall_s']:.0f} s |")
-    lines.append("")
-    lines.append(f"Held-out seeds {d['seeds'][0]}–{d['seeds'][-1]}; each row is the method's tuned "
-                 "learning rate and horizon with the exploration named. Steps to X% success: the "
-                 "first update at which the trailing mean over 5 updates of the deterministic "
-                 "success reaches X, GP methods' hyperparameter-fit episodes included; the median "
-                 "over all seeds with a bootstrap interval (∞ where more than half never get "
-                 "there). Action length-scale: the fitted kernel's, median over seeds. Wall time: "
-                 "all seeds, compilation included, on a 2-core CPU at times shared with other runs. "
-                 + ("ppo and sac: brax's, with their settings re-tuned for this study (horizon, "
-                    "exploration, learning rate; the record below), success of 64 deterministic "
-                    "episodes per evaluation, not smoothed. "
-                    if any(r["method"] in ("ppo", "sac") for r in d["rows"]) else "")
-                 + _source(path))
+    lines += ["", _caption(f"Held-out seeds {_seed_range(d['seeds'])}.", _source(path))]
     if d["guidance"]:
         lines += ["", "| exploration | P(guided_variance > gp_pg), final reward | 95% CI |",
                   "|---|---|---|"]
@@ -637,21 +596,8 @@ def exploration_standard_table(task: str) -> str:
                      f"[{float(r['return_ci95_low']):.1f}, {float(r['return_ci95_high']):.1f}] | "
                      f"{r['seeds_reaching_threshold']}/{n} | "
                      f"{'–' if math.isnan(steps) else f'{steps:,.0f}'} | {run['wall_s']:.0f} s |")
-    lines.append("")
-    lines.append(f"Held-out seeds {d['seeds'][0]}–{d['seeds'][-1]}; each method with the "
-                 "settings tuned for the task with white noise (`experiments/standard_tasks.py "
-                 "tune`) and the exploration named. "
-                 "Final return: the deterministic policy, last 10% of evaluations per seed; steps "
-                 "to threshold: the median over the seeds that reach it, the GP methods' "
-                 "hyperparameter-fit episodes included. Wall time: all seeds, compilation "
-                 "included, on a 2-core CPU at times shared with other runs. Chosen on the "
-                 f"tuning seeds: the scheme with the highest mean final return on seeds "
-                 f"{tuning['seeds'][0]}–{tuning['seeds'][-1]} at the same settings. "
-                 + ("An episode that ends is restarted in its remaining slots "
-                    "(`episode_end='restart'`), so that every slot is an environment step. "
-                    if any(r["overrides"].get("episode_end") == "restart"
-                           for r in d["runs"].values()) else "")
-                 + _source(path, tuning_path))
+    lines += ["", _caption(f"Held-out seeds {_seed_range(d['seeds'])}; tuning seeds "
+                           f"{_seed_range(tuning['seeds'])}.", _source(path, tuning_path))]
     schemes = list(dict.fromkeys(t["scheme"] for r in tuning["methods"].values()
                                  for t in r["tried"]))
     lines += ["", "| method | " + " | ".join(schemes) + " | chosen |",
@@ -660,9 +606,6 @@ def exploration_standard_table(task: str) -> str:
         score = {t["scheme"]: t["score"] for t in r["tried"]}
         lines.append(f"| {method} | " + " | ".join(
             f"{score[k]:.1f}" if k in score else "–" for k in schemes) + f" | {r['chosen']} |")
-    lines += ["", f"The tuning: the mean final return of the deterministic policy on seeds "
-                  f"{tuning['seeds'][0]}–{tuning['seeds'][-1]} under each scheme a method can "
-                  "take (– where it cannot), at the same settings."]
     if d.get("guidance"):
         lines += ["", "| exploration | P(guided_variance > gp_pg), final return | 95% CI |",
                   "|---|---|---|"]
@@ -703,7 +646,7 @@ def explored_critic_table() -> str:
     lines = ["| task | method | exploration | final return, IQM [95% CI] | seeds reaching the "
              "threshold | steps to it, median [95% CI] | wall time |",
              "|---|---|---|---|---|---|---|"]
-    paths = []
+    paths, seeds = [], set()
     for task in STANDARD_TASKS:
         runs_path = os.path.join("exploration", task, "standard.json")
         tuning_path = os.path.join("exploration", task, "standard_tuning.json")
@@ -715,7 +658,7 @@ def explored_critic_table() -> str:
             chosen = {m: r["chosen"] for m, r in json.load(f)["methods"].items()}
         with open(os.path.join(RESULTS, table_path)) as f:
             baselines = {r["method"]: r for r in json.load(f)["rows"] if r["method"] in BASELINES}
-        n = len(runs["seeds"])
+        n, seeds = len(runs["seeds"]), seeds | set(runs["seeds"])
         paper = [r for r in (_chosen_run(runs, chosen, m) for m in PAPER_METHODS) if r]
         for r in [_chosen_run(runs, chosen, "gp_critic"),
                   max(paper, key=lambda r: r[2]) if paper else None]:
@@ -727,16 +670,7 @@ def explored_critic_table() -> str:
                 task, n, name, "its own", b["final_return_iqm"], b["ci95_low"], b["ci95_high"],
                 sum(s is not None for s in b["steps_to_threshold"]), b["steps_to_threshold"],
                 b["wall_s"]))
-    lines += ["", "Held-out seeds 1000–1009. gp_critic and each method of the paper: the settings "
-                  "tuned with white noise and the exploration the method chose on the tuning seeds "
-                  "at those settings; the paper's row is the one of its methods run under its own "
-                  "choice that ends highest here. Final return: the deterministic policy, last "
-                  "10% of evaluations per seed; steps to the threshold: the median over all "
-                  "seeds with a bootstrap interval (∞ where more than half never get there), the "
-                  "GP methods' hyperparameter-fit episodes included. sac and ppo: brax's, as "
-                  "tuned on the standard tasks. Wall time: all seeds, compilation "
-                  "included, on a 2-core CPU at times shared with other runs. "
-                  + _source(*paths)]
+    lines += ["", _caption(f"Held-out seeds {_seed_range(sorted(seeds))}.", _source(*paths))]
     return "\n".join(lines)
 
 
@@ -768,37 +702,11 @@ def model_table(task: str) -> str:
                      + ((f"{r['reward_error_second']:.3f} / {r['reward_error_last']:.3f} | "
                          if "reward_error_last" in r else "– | ") if learned else "")
                      + (f"{r['model_return_last']:.1f} |" if "model_return_last" in r else "– |"))
-    seeds = d["seeds"]
-    if measure == "success rate":
-        what = (f"threshold a success rate of {d['threshold']:g} over the deterministic policy's "
-                "evaluation episodes (a swing-up held for the last second); SAC, PPO and the "
-                f"paper's best method here ({d['paper_best']}) are the swing-up study's held-out "
-                "runs, on the first ten of these seeds, at their own budgets.")
-    else:
-        what = (f"threshold {d['threshold']:g}, the mean return of the deterministic policy's "
-                "evaluation episodes from the task's random starts; SAC, PPO and the paper's best "
-                f"method here ({d['paper_best']}) are the standard-tasks study's held-out runs at "
-                "their own budgets.")
-    lines.append("")
-    lines.append(f"Held-out seeds {seeds[0]}–{seeds[-1]}; {what} A seed reaches the threshold at "
-                 f"its first evaluation at or above it. gp_model ran {d['budget']:,} environment "
-                 f"steps of learning. Final {measure}: the last evaluation of each "
-                 "run (for the others, the last of their longer runs). Wall time to the threshold: "
-                 "a run's seconds per seed (compilation included), in proportion to its steps at "
-                 "the threshold, on a 2-core CPU that other runs shared at times (an indication, "
-                 "not a benchmark). P(better than the mean model): the probability that a seed's "
-                 f"final {measure} under the choice beats one under the mean model "
-                 "(Mann–Whitney). "
-                 "Model error: the model's prediction of an update's new transitions before it "
-                 "took them in, 1 − R² over the observation's coordinates, median over seeds. "
-                 + ("Learnt reward's error: its prediction of an update's new decisions' rewards "
-                    "before it took them in, Σ(r̂ − r)² / Σr², median over seeds (reward learned: "
-                    "the same tuned settings, the reward learnt by the model instead of the "
-                    "task's stated one). " if learned else "")
-                 + "Simulated return: the mean return of the model's particle roll-outs over the "
-                 f"planning horizon ({d['horizon_steps']} steps) after the last update's "
-                 "optimisation, median over seeds. "
-                 + _source(path))
+    lines += ["", _caption(
+        f"Held-out seeds {_seed_range(d['seeds'])}; threshold: a {measure} of {d['threshold']:g}; "
+        f"the paper's best method here: {d['paper_best']}; gp_model ran {d['budget']:,} "
+        f"environment steps of learning, its planning horizon {d['horizon_steps']} steps.",
+        _source(path))]
     return "\n".join(lines)
 
 
@@ -815,10 +723,8 @@ def model_tuning_table(task: str) -> str:
         digits = 2 if measure == "success rate" else 1
         lines.append(f"| {settings} | {t['score']:.{digits}f} | {t['final']:.{digits}f} | "
                      f"{'yes' if t['settings'] == d['chosen'] else ''} |")
-    lines.append("")
-    lines.append(f"Tuning seeds {d['seeds']}, {d['budget']:,} environment steps of learning per "
-                 f"run. Score: the mean {measure} of the deterministic policy over the evaluations in "
-                 "the second half of the budget, mean over seeds. " + _source(path))
+    lines += ["", _caption(f"Tuning seeds {d['seeds']}, {d['budget']:,} environment steps of "
+                           "learning per run.", _source(path))]
     return "\n".join(lines)
 
 

@@ -75,18 +75,15 @@ import jax.numpy as jnp  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import swingup_study as S  # noqa: E402
-
 import gpguided_jax  # noqa: E402
-from gpguided_jax import checkpoints, runtime, study, summaries, tasks  # noqa: E402
+from gpguided_jax import baselines, checkpoints, methods, runtime, study, summaries  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
 from gpguided_jax import stats as stats_lib  # noqa: E402
 from gpguided_jax import train as train_lib  # noqa: E402
 
 # the paper's four (`GRID`) and gp_critic (`gpguided_jax.critic`: gp_pg's step and K steps
 # against the GP critic), which the reach stage leaves out (its initial policy is gp_pg's)
-PAPER_METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction")
+PAPER_METHODS = methods.paper()
 METHODS = (*PAPER_METHODS, "gp_critic")
 TUNING_SEEDS = study.TUNING_SEEDS
 HELDOUT_SEEDS = tuple(range(1000, 1020))
@@ -190,7 +187,8 @@ RETUNED = "retuned"
 # 0.99 of the white-noise study, 5 s is 0.999). Exploration: PPO's entropy cost; SAC learns its
 # entropy weight against a target entropy, so its reward scale sets how much exploration a unit
 # of return is worth, and its gradient steps per environment step how fast it leaves the noise.
-BASELINES = ("ppo", "sac")
+# Each run is evaluated NUM_EVALS times, the initial policy included, as in the swing-up study.
+NUM_EVALS = 21
 BASELINE_START = {"ppo": {"learning_rate": 0.003},
                   "sac": {"learning_rate": 0.001, "reward_scaling": 3.0}}
 BASELINE_GRID = {
@@ -247,6 +245,15 @@ STANDARD_BASE = {"inverted-pendulum": {"episode_end": "restart"},
                  "inverted-double-pendulum": {"episode_end": "restart"}}
 
 
+def schemes_of(method: str, schemes: dict) -> list[str]:
+    """The schemes of `schemes` whose exploration the method accepts (its declared
+    `explorations`: guided_direction white noise, held or not, only; parameter noise reinforce and
+    gp_pg only)."""
+    accepts = methods.get(method).explorations
+    return [name for name, scheme in schemes.items()
+            if scheme.get("exploration", "white") in accepts]
+
+
 def standard_overrides(task: str, scheme: str) -> dict:
     """The overrides of a standard task's run under `scheme` (over the method's tuned settings)."""
     return {**SCHEME_BASE, **STANDARD_BASE.get(task, {}), **STANDARD_SCHEMES[task][scheme]}
@@ -271,11 +278,8 @@ def reach(out: str) -> dict:
     rows = []
     for method in PAPER_METHODS:
         field, amplitudes = AMPLITUDE[method]
-        for name, scheme in REACH_SCHEMES.items():
-            if method == "guided_direction" and scheme["exploration"] != "white":
-                continue  # its candidates are drawn afresh at each decision
-            if scheme["exploration"] == "parameter" and method not in ("reinforce", "gp_pg"):
-                continue  # parameter noise perturbs the fixed-noise policy's controller
+        for name in schemes_of(method, REACH_SCHEMES):
+            scheme = REACH_SCHEMES[name]
             for amp in amplitudes:
                 if (method, name, amp) in done:
                     rows.append(done[(method, name, amp)])
@@ -392,23 +396,19 @@ def retune(out: str) -> dict:
 # -------------------------------------------------------------------------------------- baselines
 
 
-def baseline_kwargs(settings: dict) -> dict:
-    """brax trainer arguments of a baseline's settings: the horizon (s) as its discount."""
-    kw = dict(settings)
-    if "horizon" in kw:
-        kw["discounting"] = tasks.discount_for_horizon(
-            kw.pop("horizon"), config_lib.control_interval(preset("reinforce")))
-    return kw
-
-
 def baselines_tune(out: str, only=None) -> dict:
     """Coordinate search of each baseline (`BASELINE_GRID`) from `BASELINE_START` on the tuning
     seeds. Writes baseline_tuning.json."""
     header = {"seeds": list(TUNING_SEEDS), "env_steps": study.learning_steps(preset("reinforce"))}
     rep = None
-    for name in only or BASELINES:
+    for name in only or baselines.NAMES:
         t0 = time.perf_counter()
-        evaluate = S.evaluate_baseline(name, preset("reinforce"), TUNING_SEEDS, baseline_kwargs)
+
+        def evaluate(configs, name=name):  # the final success: the last evaluation, of 64 episodes
+            return study.baseline_stage(configs, lambda run: study.last_success(run.records),
+                                        name=name, cfg=preset("reinforce"), seeds=TUNING_SEEDS,
+                                        num_evals=NUM_EVALS)
+
         result = study.coordinate_search(study.stages(BASELINE_GRID[name]), evaluate,
                                          key=study.by_success, start=BASELINE_START[name],
                                          log=lambda m, name=name: log(f"[tune {name}] {m}"))
@@ -423,23 +423,17 @@ def baselines_heldout(out: str, only=None) -> dict:
     heldout/<name>.npz; recorded in baselines.json (a baseline whose settings are recorded there
     is not run again)."""
     tuning = study.read_json(os.path.join(out, "baseline_tuning.json"))
-    cfg = preset("reinforce")
 
     def run(name, settings):
-        rs = []
-        for s in HELDOUT_SEEDS:
-            r = S.run_baseline(name, cfg, s, baseline_kwargs(settings))
-            log(f"[heldout {name}] seed {s}: {r.wall_time:.0f}s, success {r.success_rate[-1]:.2f}, "
-                f"reward {r.reward_per_step[-1]:.3f}")
-            rs.append(r)
+        run = study.run_baseline(name, preset("reinforce"), HELDOUT_SEEDS, settings,
+                                 num_evals=NUM_EVALS, progress=lambda m: log(f"[heldout] {m}"))
         os.makedirs(os.path.join(out, "heldout"), exist_ok=True)
-        checkpoints.atomic_savez(os.path.join(out, "heldout", f"{name}.npz"),
-                                 steps=rs[0].env_steps,
-                                 success=np.stack([r.success_rate for r in rs]),
-                                 reward=np.stack([r.reward_per_step for r in rs]))
-        return {"wall_s": float(sum(r.wall_time for r in rs))}
+        checkpoints.atomic_savez(os.path.join(out, "heldout", f"{name}.npz"), steps=run.env_steps,
+                                 success=run.records["eval_success_rate"],
+                                 reward=run.records["eval_reward"])
+        return {"wall_s": run.wall_s}
 
-    parts = {name: tuning["methods"][name]["chosen"] for name in only or BASELINES}
+    parts = {name: tuning["methods"][name]["chosen"] for name in only or baselines.NAMES}
     return study.run_parts(os.path.join(out, "baselines.json"), {"seeds": list(HELDOUT_SEEDS)},
                            parts, run, settings_key="settings",
                            log=lambda m: log(f"[heldout] {m}"))
@@ -504,7 +498,7 @@ def report(out: str) -> str:
             table["rows"].append(kept[key])
             continue
         steps, success, reward = _curves(out, method, scheme, run["overrides"])
-        smooth = study.smoothed(success, S.SMOOTH)
+        smooth = study.smoothed(success)  # a trailing mean over 5 updates, as the swing-up study's
         is_chosen = scheme == chosen[method]
         table["rows"].append(dict(
             method=method, scheme=scheme, chosen=is_chosen, settings=run["overrides"],
@@ -566,20 +560,6 @@ def report(out: str) -> str:
 # --------------------------------------------------------------------------------------- standard
 
 
-def _schemes_of(method: str, schemes: dict) -> list[str]:
-    """The schemes a method can take: guided_direction white noise (held or not) only, parameter
-    noise for reinforce and gp_pg only."""
-    names = []
-    for name, scheme in schemes.items():
-        kind = scheme.get("exploration", "white")
-        if method == "guided_direction" and kind != "white":
-            continue
-        if kind == "parameter" and method not in ("reinforce", "gp_pg"):
-            continue
-        names.append(name)
-    return names
-
-
 def standard_tune(task: str, out: str, only=None) -> dict:
     """The scheme each method would choose on the tuning seeds: each scheme of
     `STANDARD_SCHEMES[task]` it can take at its tuned settings, on `TUNING_SEEDS`; score: the mean
@@ -593,7 +573,7 @@ def standard_tune(task: str, out: str, only=None) -> dict:
     for method in only or METHODS:
         tried = rec["methods"].get(method, {}).get("tried", [])
         done = {t["scheme"] for t in tried}
-        for name in _schemes_of(method, STANDARD_SCHEMES[task]):
+        for name in schemes_of(method, STANDARD_SCHEMES[task]):
             if name in done:
                 continue
             run = study.run_method(task, method, TUNING_SEEDS,
@@ -629,7 +609,7 @@ def standard(task: str, out: str, only=None, chosen: bool = False) -> dict:
     choice = ({m: r["chosen"] for m, r in study.read_json(
         os.path.join(base, "standard_tuning.json"))["methods"].items()} if chosen else {})
     parts = {f"{m}/{name}": standard_overrides(task, name)
-             for m in only or METHODS for name in _schemes_of(m, STANDARD_SCHEMES[task])
+             for m in only or METHODS for name in schemes_of(m, STANDARD_SCHEMES[task])
              if not chosen or name == choice[m]}
     meta = study.run_parts(path, {"task": task, "seeds": list(STANDARD_SEEDS)}, parts, run,
                            log=lambda m: log(f"[standard {task}] {m}"))
@@ -674,12 +654,12 @@ def main(argv=None) -> int:
     ap.add_argument("--chosen", action="store_true",
                     help="standard: each method under the scheme its tuning chose only")
     ap.add_argument("--out", default="docs/results/exploration")
-    ap.add_argument("--only", nargs="+", default=None, choices=(*METHODS, *BASELINES),
+    ap.add_argument("--only", nargs="+", default=None, choices=(*METHODS, *baselines.NAMES),
                     help="these methods (or, for the baseline stages, baselines) only")
     ap.add_argument("--compile-cache", default=runtime.DEFAULT_COMPILE_CACHE)
     args = ap.parse_args(argv)
     if args.only:
-        names = BASELINES if args.stage.startswith("baselines") else METHODS
+        names = baselines.NAMES if args.stage.startswith("baselines") else METHODS
         if not set(args.only) <= set(names):
             ap.error(f"--only: the {args.stage} stage takes {', '.join(names)}")
     runtime.set_compile_cache(args.compile_cache)

@@ -63,7 +63,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import gpguided_jax  # noqa: E402
-from gpguided_jax import analysis, estimators, sharding  # noqa: E402
+from gpguided_jax import analysis, estimators, methods, sharding  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
 from gpguided_jax import stats as stats_lib  # noqa: E402
 from gpguided_jax import train as train_lib  # noqa: E402
@@ -71,7 +71,7 @@ from gpguided_jax import train as train_lib  # noqa: E402
 gpguided_jax.enable_x64()  # float64: the package leaves this choice to its user
 from gpguided_jax.sweep import even_chunk_size  # noqa: E402
 
-METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction")
+METHODS = methods.paper()
 LABELS = {
     "reinforce": "REINFORCE",
     "gp_pg": "fixed noise (gp_pg)",
@@ -212,7 +212,7 @@ def write_grid_csv(path, columns, rows):
         w.writerows(rows)
 
 
-GP_METHODS = ("gp_pg", "guided_variance", "guided_direction")
+GP_METHODS = tuple(m for m in METHODS if m in methods.gp_methods())  # the paper's with a GP
 
 
 def parse_args(argv=None):

@@ -9,7 +9,9 @@ study's held-out runs (docs/results/standard/<task>/heldout), on the same held-o
 Stages, per task; each writes under --out (default docs/results/model/<task>):
 
 ``tune``    Tuning seeds (100, 101; never reported): coordinate search over `GRIDS` (written
-            before any run), from `BASE`'s settings. The score is the run's measure (`MEASURES`:
+            before any run), from `BASE`'s settings (`base`: gp_model's preset,
+            `config.METHOD_PRESETS`, for the settings the search leaves alone, and `START` for
+            those it searches). The score is the run's measure (`MEASURES`:
             the deterministic policy's return, its success rate on the swing-up) over the
             evaluations in the second half of the budget (mean over seeds): it rewards reaching
             the threshold early and staying there. Writes tuning.json.
@@ -37,7 +39,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 
 import matplotlib
@@ -46,9 +47,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-import gpguided_jax  # noqa: E402
+from gpguided_jax import baselines, exploration, model_based, stats, study, tasks  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
-from gpguided_jax import exploration, model_based, runtime, stats, study, tasks  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 METHOD = "gp_model"
@@ -59,30 +59,22 @@ TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum", "inverted
 # (the car and the swing-up: 10 episodes)
 BUDGETS = {"pendulum-v1": 2000, "mountaincar-continuous": 9990, "inverted-pendulum": 6000,
            "inverted-double-pendulum": 6000, "swingup": 9000}
-# the settings every run starts from: one episode an update; the first episode's noise is half
-# the torque range, the floor after it (`model_based` notes)
-# (brax's inverted pendulum: episodes restarted where they end, so that every slot is a step, as
-# for SAC and PPO; the simulated roll-outs as long as the standard tasks' other settings allow)
-BASE = {"pendulum-v1": dict(episodes_per_update=1, init_log_std=0.0, min_std=0.05,
-                            eval_episodes=10),
-        "inverted-pendulum": dict(episodes_per_update=1, episode_end="restart",
-                                  init_log_std=math.log(0.5), min_std=0.05, eval_episodes=5,
-                                  model_capacity=3000, model_horizon=8.0),
-        # brax's double pendulum as the single one, the simulated roll-outs of 4 s (200 steps)
-        "inverted-double-pendulum": dict(episodes_per_update=1, episode_end="restart",
-                                         init_log_std=math.log(0.5), min_std=0.05,
-                                         eval_episodes=5, model_capacity=3000,
-                                         model_horizon=4.0),
-        # the car: decisions held 5 steps (its step counts as 1 s), simulated roll-outs of 200
-        # steps, and the goal's end smoothed at the scale of the observation's spread, so that
-        # the goal's bonus is felt from afar (`model_end_softness`)
-        "mountaincar-continuous": dict(episodes_per_update=1, hold_time=5.0, init_log_std=0.0,
-                                       min_std=0.05, eval_episodes=5, model_horizon=200.0,
-                                       model_end_softness=1.0),
-        # the swing-up: the controller decides at 10 Hz and holds its action, as PILCO's does, so
-        # that the model is of one decision; the simulated roll-outs as long as the episode
-        "swingup": dict(episodes_per_update=1, hold_time=0.1, init_log_std=math.log(2.0),
-                        min_std=0.05, eval_episodes=10, model_horizon=4.5)}
+# where the search starts in the settings it searches (`GRIDS`); the settings it leaves alone
+# are gp_model's preset's (`base`: one episode an update, the first episode's noise, the floor
+# after it, the evaluation episodes, and on brax's pendulums episodes restarted where they end and
+# the model's capacity)
+START = {
+    # brax's inverted pendulum: the simulated roll-outs as long as the standard tasks' other
+    # settings allow; its double pendulum as the single one, roll-outs of 4 s (200 steps)
+    "inverted-pendulum": dict(model_horizon=8.0),
+    "inverted-double-pendulum": dict(model_horizon=4.0),
+    # the car: decisions held 5 steps (its step counts as 1 s), simulated roll-outs of 200
+    # steps, and the goal's end smoothed at the scale of the observation's spread, so that the
+    # goal's bonus is felt from afar (`model_end_softness`)
+    "mountaincar-continuous": dict(hold_time=5.0, model_horizon=200.0, model_end_softness=1.0),
+    # the swing-up: the controller decides at 10 Hz and holds its action, as PILCO's does, so
+    # that the model is of one decision; the simulated roll-outs as long as the episode
+    "swingup": dict(hold_time=0.1, model_horizon=4.5)}
 # (parameter, values) per stage, applied over the best so far (its default between the values):
 # the exploration choice, the simulated horizon (s; default 4), the Adam step (0.01), the
 # optimiser steps per update (100), the inducing inputs (200) and L-BFGS in place of Adam
@@ -102,8 +94,8 @@ GRIDS = {"pendulum-v1": [("model_exploration", list(model_based.EXPLORATIONS)),
                                     ("model_end_softness", [0.3, 3.0]),
                                     ("model_horizon", [100.0, 400.0]),
                                     ("hold_time", [2.0, 10.0])],
-         # the swing-up (4.5 s and 0.1 s held in BASE): the exploration choice, the horizon, the
-         # hold, the inducing inputs and the optimiser's steps
+         # the swing-up (from 4.5 s and 0.1 s held, `START`): the exploration choice, the horizon,
+         # the hold, the inducing inputs and the optimiser's steps
          "swingup": [("model_exploration", list(model_based.EXPLORATIONS)),
                      ("model_horizon", [3.0, 6.0]),
                      ("hold_time", [0.05, 0.2]),
@@ -113,9 +105,26 @@ GRIDS = {"pendulum-v1": [("model_exploration", list(model_based.EXPLORATIONS)),
 # threshold, or (the swing-up) its success rate against the aim's 90%
 MEASURES = {"swingup": ("eval_success_rate", 0.9, "success rate")}
 STANDARD = os.path.join(ROOT, "docs", "results", "standard")
-BASELINES = ("sac", "ppo")
-PAPER = tuple(f"{m}{end}" for end in ("", "_restart") for m in
-              ("reinforce", "gp_pg", "guided_variance", "guided_direction", "gp_critic"))
+# brax's baselines, SAC's row first (the aim's comparison), and the standard-tasks study's runs
+# of the paper's methods and gp_critic (experiments/standard_tasks.py), restarted or not
+BESIDE = tuple(reversed(baselines.NAMES))
+PAPER = tuple(f"{m}{end}" for end in ("", "_restart") for m in (*config_lib.PAPER_METHODS, "gp_critic"))
+
+
+def base(task: str) -> dict:
+    """The settings every run of `task` starts from: gp_model's preset
+    (`config.METHOD_PRESETS[task]['gp_model']`) without the settings the search chose (those of
+    `GRIDS[task]`) and the budget's updates, and where the search starts in those (`START`)."""
+    searched = {p for params, _ in GRIDS[task]
+                for p in (params if isinstance(params, (tuple, list)) else (params,))}
+    start = START.get(task, {})
+    preset = config_lib.METHOD_PRESETS[task][METHOD]
+    kept = {k: start.get(k, v) for k, v in preset.items()
+            if k in start or (k not in searched and k != "num_updates")}
+    return {**kept, **start}
+
+
+BASE = {task: base(task) for task in TASKS}
 
 
 def overrides(task: str, settings: dict) -> dict:
@@ -239,11 +248,11 @@ def _others(task: str, seeds: list) -> dict:
         with np.load(path + ".npz") as f:
             for name in meta["wall_s"]:
                 steps, ret = f[f"{name}_steps"], np.asarray(f[f"{name}_success"], float)
-                if name in BASELINES:  # brax evaluates the initial policy first, at 0 steps
-                    steps, ret = steps[1:], ret[:, 1:]
+                if name in baselines.NAMES:
+                    steps, ret = baselines.after_initial_evaluation(steps, ret)
                 others[name] = (steps, ret, meta["wall_s"][name])
         return others
-    for name in (*BASELINES, *PAPER):
+    for name in (*BESIDE, *PAPER):
         p = os.path.join(STANDARD, task, "heldout", name)
         if not os.path.exists(p + ".npz"):
             continue
@@ -252,8 +261,8 @@ def _others(task: str, seeds: list) -> dict:
         meta = study.read_json(p + ".json")
         if meta["seeds"] != seeds:
             continue
-        if name in BASELINES:  # brax evaluates the initial policy first, at 0 steps
-            steps, ret = steps[1:], ret[:, 1:]
+        if name in baselines.NAMES:
+            steps, ret = baselines.after_initial_evaluation(steps, ret)
         others[name] = (steps, ret, meta["wall_s"])
     return others
 
@@ -291,7 +300,7 @@ def report(task: str, out: str) -> None:
     others = _others(task, seeds)
     paper_best = max((n for n in PAPER if n in others),
                      key=lambda n: study.final(others[n][1]).mean(), default=None)
-    for name in (*BASELINES, paper_best):
+    for name in (*BESIDE, paper_best):
         if name is not None and name in others:
             steps, ret, wall_s = others[name]
             rows.append(_row(name, steps, ret, threshold, wall_s, seeds))
@@ -338,11 +347,7 @@ def main(argv=None) -> int:
     p.add_argument("--reward", choices=("stated", "learned"), default="stated",
                    help="heldout: the task's stated reward (default) or one the model learns")
     args = p.parse_args(argv)
-    runtime.single_threaded_lapack()
-    runtime.set_compile_cache(runtime.DEFAULT_COMPILE_CACHE)
-    gpguided_jax.enable_x64()
-    out = args.out or os.path.join(ROOT, "docs", "results", "model", args.task)
-    os.makedirs(out, exist_ok=True)
+    out = study.set_up(args.out or os.path.join(ROOT, "docs", "results", "model", args.task))
     if args.stage == "tune":
         tune(args.task, out)
     elif args.stage == "heldout":

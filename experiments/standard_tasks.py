@@ -58,14 +58,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-import gpguided_jax  # noqa: E402
-from gpguided_jax import baselines, checkpoints, runtime, study, summaries, tasks  # noqa: E402
+from gpguided_jax import baselines, checkpoints, methods, study, summaries, tasks  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
 from gpguided_jax import stats as stats_lib  # noqa: E402
 
-# the paper's four, and gp_critic (`gpguided_jax.critic`), each with its grid (`grids`)
-METHODS = ("reinforce", "gp_pg", "guided_variance", "guided_direction", "gp_critic")
-BASELINES = ("ppo", "sac")
+# the paper's four, and gp_critic (`gpguided_jax.critic`), each with its grid (`grids`), beside
+# brax's PPO and SAC (`baselines.NAMES`)
+METHODS = (*methods.paper(), "gp_critic")
 # On a task whose episodes end early, each method again with the settings tuned above and
 # `episode_end='restart'` (an episode that ends is restarted in its remaining slots, so every slot
 # is an environment step, as for PPO and SAC): `heldout --only reinforce_restart ...`.
@@ -165,7 +164,7 @@ def method_overrides(task: str, method: str, settings: dict) -> dict:
 
 
 def budget(task: str) -> int:
-    return study.learning_steps(config_lib.preset(task, method="reinforce"))
+    return study.learning_steps(baseline_config(task))
 
 
 # ------------------------------------------------------------------------------------------ tune
@@ -180,30 +179,22 @@ def tune_method(task: str, method: str, seeds) -> dict:
                                    log=lambda m: study.log(f"[tune {task} {method}] {m}"))
 
 
-def baseline_kwargs(task: str, settings: dict) -> dict:
-    out = {k: v for k, v in settings.items() if k != "horizon"}
-    if "horizon" in settings:
-        out["discounting"] = _discount(task, settings["horizon"])
-    if "grad_updates_per_step" in out:
-        out["grad_updates_per_step"] = int(out["grad_updates_per_step"])
-    return out
+def baseline_config(task: str) -> config_lib.TrainConfig:
+    """The config whose task, budget and episode length the baselines run with."""
+    return config_lib.preset(task, method="reinforce")
 
 
-def run_baseline(task: str, name: str, seed: int, settings: dict) -> baselines.TaskResult:
-    cfg = config_lib.preset(task, method="reinforce")
-    return baselines.train_on_task(name, cfg.env, budget(task), cfg.episode_length, seed,
-                                   num_evals=NUM_EVALS, **baseline_kwargs(task, settings))
+def baseline_score(run: study.BaselineRun) -> dict:
+    """{'score': the final return of the deterministic policy (its evaluations after learning
+    started), mean over seeds}, as a method's (`study.final_return`)."""
+    _, ret = baselines.after_initial_evaluation(run.env_steps, run.records["eval_return"])
+    return study.final_return({"eval_return": ret})
 
 
 def tune_baseline(task: str, name: str, seeds) -> dict:
     def evaluate(configs):
-        out = []
-        for settings in configs:
-            results = [run_baseline(task, name, s, settings) for s in seeds]
-            out.append(dict(score=float(np.mean([study.final(r.episode_return[None, 1:])[0]
-                                                 for r in results])),
-                            wall_s=float(sum(r.wall_time for r in results))))
-        return out
+        return study.baseline_stage(configs, baseline_score, name=name, cfg=baseline_config(task),
+                                    seeds=seeds, num_evals=NUM_EVALS)
 
     return study.coordinate_search(study.stages(baseline_grids(task)[name]), evaluate,
                                    log=lambda m: study.log(f"[tune {task} {name}] {m}"))
@@ -214,16 +205,16 @@ def tune(task: str, out: str, only: list[str]) -> None:
     baselines can be tuned by separate processes); `report` gathers them into tuning.json."""
     for name in only:
         study.log(f"[tune {task}] {name}")
-        result = (tune_baseline(task, name, TUNING_SEEDS) if name in BASELINES
+        result = (tune_baseline(task, name, TUNING_SEEDS) if name in baselines.NAMES
                   else tune_method(task, name, TUNING_SEEDS))
-        grid = (baseline_grids(task) if name in BASELINES else grids(task))[name]
+        grid = (baseline_grids(task) if name in baselines.NAMES else grids(task))[name]
         study.write_json(os.path.join(out, "tuning", f"{name}.json"), {"grid": grid, **result})
 
 
 def gather_tuning(task: str, out: str) -> dict:
     """tuning.json: every tuned method's and baseline's record, in a fixed order."""
     methods = {}
-    for name in (*METHODS, *BASELINES):
+    for name in (*METHODS, *baselines.NAMES):
         rec = study.read_json(os.path.join(out, "tuning", f"{name}.json"))
         if rec is not None:
             methods[name] = rec
@@ -276,14 +267,10 @@ def heldout(task: str, out: str, seeds, only: list[str], part: str | None = None
                       "steps_used": steps_used(run_dir, config_lib.preset(task, method=method,
                                                                           **overrides))}
         else:
-            rs = []
-            for s in seeds:
-                r = run_baseline(task, name, s, settings)
-                study.log(f"[{task} {name}] seed {s}: {r.env_steps[-1]} steps, {r.wall_time:.0f}s, "
-                          f"return {r.episode_return[-1]:.1f}")
-                rs.append(r)
-            curves = {"steps": rs[0].env_steps, "return": np.stack([r.episode_return for r in rs])}
-            meta["wall_s"] = float(sum(r.wall_time for r in rs))
+            run = study.run_baseline(name, baseline_config(task), seeds, settings,
+                                     num_evals=NUM_EVALS, progress=lambda m: study.log(f"[{task}] {m}"))
+            curves = {"steps": run.env_steps, "return": run.records["eval_return"]}
+            meta["wall_s"] = run.wall_s
         os.makedirs(os.path.dirname(path), exist_ok=True)
         checkpoints.atomic_savez(path + ".npz", **curves)
         study.write_json(path + ".json", meta)
@@ -313,7 +300,7 @@ def _join_parts(out: str, name: str) -> None:
 
 
 def _method_and_end(name: str) -> tuple[str, str]:
-    """(method, episode_end) of a name of METHODS, RESTARTED, VARIANTS or BASELINES."""
+    """(method, episode_end) of a name of METHODS, RESTARTED, VARIANTS or baselines.NAMES."""
     if name.endswith("_restart"):
         return name[: -len("_restart")], "restart"
     if name in VARIANTS:
@@ -384,7 +371,7 @@ def steps_used(run_dir: str, cfg) -> np.ndarray:
 def report(task: str, out: str) -> None:
     gather_tuning(task, out)
     curves, meta = {}, {"wall_s": {}}
-    for n in (*METHODS, *RESTARTED, *VARIANTS, *BASELINES):
+    for n in (*METHODS, *RESTARTED, *VARIANTS, *baselines.NAMES):
         _join_parts(out, n)
         path = os.path.join(out, "heldout", f"{n}.npz")
         if os.path.exists(path):
@@ -396,14 +383,14 @@ def report(task: str, out: str) -> None:
             meta["wall_s"][n], meta["seeds"] = m["wall_s"], m["seeds"]
     threshold = tasks.THRESHOLDS[config_lib.PRESETS[task]["env"]]
     terminates = tasks.make_task(config_lib.PRESETS[task]["env"]).terminates
-    names = [n for n in (*METHODS, *RESTARTED, *VARIANTS, *BASELINES)
+    names = [n for n in (*METHODS, *RESTARTED, *VARIANTS, *baselines.NAMES)
              if f"{n}_return" in curves]
     rows = []
     fig, ax = plt.subplots(figsize=(7, 4))
     for n in names:
         steps, ret = curves[f"{n}_steps"], np.asarray(curves[f"{n}_return"], float)
-        if n in BASELINES:  # brax evaluates the initial policy first; the final 10% as ours
-            steps, ret = steps[1:], ret[:, 1:]
+        if n in baselines.NAMES:
+            steps, ret = baselines.after_initial_evaluation(steps, ret)
         final = study.final(ret)
         lo, hi = stats_lib.bootstrap_ci(final)
         reach = study.steps_to(steps, ret, threshold, never=np.nan)
@@ -414,9 +401,9 @@ def report(task: str, out: str) -> None:
                                                     if np.isfinite(reach).any() else None),
                          seeds_reaching=int(np.isfinite(reach).sum()), env_steps=int(steps[-1]),
                          wall_s=float(meta["wall_s"][n])))
-        if terminates and (n in BASELINES or f"{n}_used" in curves):
+        if terminates and (n in baselines.NAMES or f"{n}_used" in curves):
             # the baselines step the environment for their whole budget
-            used = (curves[f"{n}_used"] if n not in BASELINES
+            used = (curves[f"{n}_used"] if n not in baselines.NAMES
                     else np.full(ret.shape[0], float(steps[-1])))
             rows[-1]["steps_used_median"] = float(np.median(used))
         study.plot_band(ax, steps, ret, label=n, ls=":" if n in RESTARTED else "-")
@@ -448,8 +435,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None, help="default docs/results/standard/<task>")
     p.add_argument("--part", default=None, metavar="K/N",
                    help="heldout: a baseline's seeds K, K + N, ... only (N processes at once)")
-    p.add_argument("--only", nargs="+", default=[*METHODS, *BASELINES],
-                   choices=[*METHODS, *RESTARTED, *VARIANTS, *BASELINES],
+    p.add_argument("--only", nargs="+", default=[*METHODS, *baselines.NAMES],
+                   choices=[*METHODS, *RESTARTED, *VARIANTS, *baselines.NAMES],
                    help="tune, heldout: these methods and baselines (heldout: also "
                    "<method>_restart, the method with episode_end='restart', and gp_critic's "
                    "variants: gp_critic_lambda, gp_critic_m400, gp_critic_retuned)")
@@ -459,11 +446,7 @@ def main(argv=None) -> int:
                 "for their method")
     if args.stage == "targets" and args.task not in TARGET_GRIDS:
         p.error(f"targets: the grid covers {', '.join(TARGET_GRIDS)}")
-    runtime.single_threaded_lapack()
-    runtime.set_compile_cache(runtime.DEFAULT_COMPILE_CACHE)
-    gpguided_jax.enable_x64()
-    out = args.out or os.path.join(ROOT, "docs", "results", "standard", args.task)
-    os.makedirs(out, exist_ok=True)
+    out = study.set_up(args.out or os.path.join(ROOT, "docs", "results", "standard", args.task))
     if args.stage == "tune":
         tune(args.task, out, args.only)
     elif args.stage == "targets":

@@ -25,12 +25,11 @@ import argparse
 import json
 import os
 import sys
-import time
 
 import jax
 import numpy as np
 
-from gpguided_jax import baselines, checkpoints, sharding, summaries, swingup
+from gpguided_jax import checkpoints, sharding, study, summaries, swingup
 from gpguided_jax import config as config_lib
 from gpguided_jax import train as train_lib
 
@@ -38,10 +37,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from swingup_study import METHODS, study_config  # noqa: E402
 
 SEEDS = (100, 101, 102, 103, 104)
-
-
-def log(msg):
-    print(f"[{time.strftime('%X')}] {msg}", file=sys.stderr, flush=True)
+log = study.log
 
 
 def warm_start(seeds, tuning: dict, learning_rate=None) -> dict:
@@ -86,14 +82,11 @@ def sac_long_horizon(seeds) -> dict:
     cfg = config_lib.preset("swingup", method="reinforce", dtype="float32")
     settings = {**tuned, "discounting": 0.999, "grad_updates_per_step": 8,
                 "deterministic_eval": True}
-    runs = []
-    for s in seeds[:2]:
-        r = baselines.train_sac(cfg.pendulum, cfg.num_updates * cfg.episodes_per_update
-                                * cfg.episode_length, cfg.episode_length, s, num_evals=11, **settings)
-        log(f"[sac gamma 0.999, 8 updates/step] seed {s}: success {r.success_rate[-1]:.2f}, reward "
-            f"{r.reward_per_step[-1]:.3f}, {r.wall_time:.0f}s")
-        runs.append(dict(seed=s, success=r.success_rate.tolist(), reward=r.reward_per_step.tolist(),
-                         env_steps=r.env_steps.tolist(), wall_s=r.wall_time))
+    run = study.run_baseline("sac", cfg, seeds[:2], settings, num_evals=11,
+                             progress=lambda m: log(f"[gamma 0.999, 8 updates/step] {m}"))
+    runs = [dict(seed=s, success=run.records["eval_success_rate"][i].tolist(),
+                 reward=run.records["eval_reward"][i].tolist(), env_steps=run.env_steps.tolist(),
+                 wall_s=run.seed_wall_s[i]) for i, s in enumerate(seeds[:2])]
     return {"settings": settings, "runs": runs}
 
 

@@ -61,18 +61,19 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import gpguided_jax  # noqa: E402
-from gpguided_jax import baselines, checkpoints, sharding, study  # noqa: E402
+from gpguided_jax import baselines, checkpoints, methods, sharding, study  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
 
-BASELINES = ("ppo", "sac")
 CONFIGS_PER_METHOD = 8
 TUNING_SEEDS = study.TUNING_SEEDS
 HELDOUT_SEEDS = study.HELDOUT_SEEDS
 NUM_EVALS = 21
 SMOOTH = 5
 LN = math.log
-# (parameter, values) stages of the coordinate search: 4 + 2 + 2 = 8 configurations per method
-# (guided_direction: 2 + 2 + 2 + 2, as it has one more parameter, beta).
+# The paper's methods (`methods.paper()`), each with its (parameter, values) stages of the
+# coordinate search: 4 + 2 + 2 = 8 configurations per method (guided_direction: 2 + 2 + 2 + 2, as
+# it has one more parameter, beta); brax's PPO and SAC (`baselines.NAMES`) with theirs.
+METHODS = methods.paper()
 GRIDS = {
     "reinforce": [("learning_rate", [0.03, 0.1, 0.3, 1.0]), ("init_log_std", [LN(0.5), LN(3.0)]),
                   ("learning_rate", [0.01, 3.0])],
@@ -83,14 +84,12 @@ GRIDS = {
     "guided_direction": [("learning_rate", [0.1, 0.3]), ("candidate_scale", [1.0, 9.0]),
                          ("age_penalty", [10.0, 1000.0]), ("inverse_temperature", [1.0, 100.0])],
 }
-METHODS = tuple(GRIDS)
 BASELINE_GRIDS = {
     "ppo": [("learning_rate", [1e-4, 3e-4, 1e-3, 3e-3]), ("entropy_cost", [1e-4, 1e-2]),
             ("unroll_length", [10, 50])],
     "sac": [("learning_rate", [1e-4, 3e-4, 1e-3, 3e-3]), ("reward_scaling", [0.3, 3.0]),
             ("batch_size", [64, 512])],
 }
-BASELINE_FIXED = {"ppo": dict(deterministic_eval=True), "sac": dict(deterministic_eval=True)}
 study.check_budget({**GRIDS, **BASELINE_GRIDS}, CONFIGS_PER_METHOD)
 
 
@@ -114,12 +113,6 @@ def study_config(tuning: dict, method: str, **overrides) -> config_lib.TrainConf
                                                        overrides))
 
 
-def score_baseline(results: list) -> dict:
-    """The final success rate and reward per step of a baseline's runs, means over seeds."""
-    return dict(success=float(np.mean([r.success_rate[-1] for r in results])),
-                reward=float(np.mean([r.reward_per_step[-1] for r in results])))
-
-
 # ------------------------------------------------------------------------------------------ tune
 
 
@@ -135,28 +128,13 @@ def tune_method(method: str, seeds, dtype: str) -> dict:
                                    log=lambda m: study.log(f"[tune {method}] {m}"))
 
 
-def run_baseline(name: str, cfg, seed: int, settings: dict):
-    fn = baselines.train_ppo if name == "ppo" else baselines.train_sac
-    return fn(cfg.pendulum, study.learning_steps(cfg), cfg.episode_length, seed,
-              num_evals=NUM_EVALS, **{**BASELINE_FIXED[name], **settings})
-
-
-def evaluate_baseline(name: str, cfg, seeds, kwargs=dict):
-    """`study.coordinate_search`'s evaluation of a baseline's configurations: each run on every
-    seed (`kwargs`: the trainer's arguments of a configuration's settings)."""
-    def evaluate(configs):
-        out = []
-        for settings in configs:
-            results = [run_baseline(name, cfg, s, kwargs(settings)) for s in seeds]
-            out.append({**score_baseline(results),
-                        "wall_s": float(sum(r.wall_time for r in results))})
-        return out
-
-    return evaluate
-
-
 def tune_baseline(name: str, seeds) -> dict:
-    evaluate = evaluate_baseline(name, base_config("reinforce", dtype="float32"), seeds)
+    def evaluate(configs):
+        # the final success and reward per step: the last evaluation, of 64 episodes
+        return study.baseline_stage(configs, lambda run: study.last_success(run.records),
+                                    name=name, cfg=base_config("reinforce", dtype="float32"),
+                                    seeds=seeds, num_evals=NUM_EVALS)
+
     return study.coordinate_search(study.stages(BASELINE_GRIDS[name]), evaluate,
                                    key=study.by_success,
                                    log=lambda m: study.log(f"[tune {name}] {m}"))
@@ -206,31 +184,22 @@ def heldout(out: str, seeds, tuning: dict, dtype: str, only=None) -> None:
         with np.load(npz) as f:
             curves = {k: f[k] for k in f.files if k.rsplit("_", 1)[0] not in only}
         meta["wall_s"] = {k: v for k, v in kept["wall_s"].items() if k not in only}
-    for m in (m for m in METHODS if only is None or m in only):
-        # each alone: its wall time holds its own fit and compilation
-        run = study.run_method("swingup", m, seeds, os.path.join(out, "methods", m),
-                               white_noise_overrides(tuning, m), dtype=dtype, chunk_size=20)
-        curves[f"{m}_steps"] = run.env_steps
-        curves[f"{m}_success"] = run.records["eval_success_rate"]
-        curves[f"{m}_reward"] = run.records["eval_reward"]
-        meta["wall_s"][m] = run.wall_s
-    cfg = base_config("reinforce", dtype=dtype)
-    for name in (b for b in BASELINES if only is None or b in only):
-        settings = tuning["methods"][name]["chosen"]
-        rs = []
-        for s in seeds:
-            r = run_baseline(name, cfg, s, settings)
-            study.log(f"[{name}] seed {s}: {r.env_steps[-1]} steps, {r.wall_time:.0f}s, success "
-                      f"{r.success_rate[-1]:.2f}, reward {r.reward_per_step[-1]:.3f}")
-            rs.append(r)
-        curves[f"{name}_steps"] = rs[0].env_steps
-        curves[f"{name}_success"] = np.stack([r.success_rate for r in rs])
-        curves[f"{name}_reward"] = np.stack([r.reward_per_step for r in rs])
-        meta["wall_s"][name] = float(sum(r.wall_time for r in rs))
-    order = [f"{n}_{k}" for n in (*METHODS, *BASELINES) for k in ("steps", "success", "reward")]
+    names = (*METHODS, *baselines.NAMES)
+    for name in (n for n in names if only is None or n in only):
+        if name in METHODS:  # each alone: its wall time holds its own fit and compilation
+            run = study.run_method("swingup", name, seeds, os.path.join(out, "methods", name),
+                                   white_noise_overrides(tuning, name), dtype=dtype, chunk_size=20)
+        else:
+            run = study.run_baseline(name, base_config("reinforce", dtype=dtype), seeds,
+                                     tuning["methods"][name]["chosen"], num_evals=NUM_EVALS)
+        curves[f"{name}_steps"] = run.env_steps
+        curves[f"{name}_success"] = run.records["eval_success_rate"]
+        curves[f"{name}_reward"] = run.records["eval_reward"]
+        meta["wall_s"][name] = run.wall_s
+    order = [f"{n}_{k}" for n in names for k in ("steps", "success", "reward")]
     checkpoints.atomic_savez(npz, **{k: curves[k] for k in order if k in curves})
     study.write_json(js, {"seeds": meta["seeds"], "wall_s": {
-        n: meta["wall_s"][n] for n in (*METHODS, *BASELINES) if n in meta["wall_s"]}})
+        n: meta["wall_s"][n] for n in names if n in meta["wall_s"]}})
 
 
 # ---------------------------------------------------------------------------------------- report
@@ -239,14 +208,14 @@ def heldout(out: str, seeds, tuning: dict, dtype: str, only=None) -> None:
 def smoothed(success: np.ndarray, name: str) -> np.ndarray:
     """Our methods' per-update success (4 episodes) as a trailing mean over SMOOTH updates; the
     baselines' evaluations (64 episodes each) as they are."""
-    return success if name in BASELINES else study.smoothed(success, SMOOTH)
+    return success if name in baselines.NAMES else study.smoothed(success, SMOOTH)
 
 
 def report(out: str) -> str:
     with np.load(os.path.join(out, "heldout.npz")) as f:
         curves = {k: f[k] for k in f.files}
     meta = study.read_json(os.path.join(out, "heldout.json"))
-    names = [*METHODS, *BASELINES]
+    names = [*METHODS, *baselines.NAMES]
     rows = []
     for n in names:
         steps, succ = curves[f"{n}_steps"], smoothed(curves[f"{n}_success"], n)
@@ -306,7 +275,7 @@ def report(out: str) -> str:
 
 # ----------------------------------------------------------------------------------------- gpfig
 
-GP_METHODS = ("gp_pg", "guided_variance", "guided_direction")
+GP_METHODS = tuple(m for m in METHODS if m in methods.gp_methods())  # the GP's paper methods
 UPRIGHT_BAND = 0.5  # rad: "in the upright region"
 
 
@@ -449,9 +418,9 @@ def main(argv=None) -> int:
     if args.stage == "tune":
         header = {"seeds": list(TUNING_SEEDS), "dtype": args.dtype,
                   "env_steps": study.learning_steps(base_config("reinforce", dtype=args.dtype))}
-        for name in args.only or [*METHODS, *BASELINES]:
+        for name in args.only or [*METHODS, *baselines.NAMES]:
             t0 = time.perf_counter()
-            result = (tune_baseline(name, TUNING_SEEDS) if name in BASELINES
+            result = (tune_baseline(name, TUNING_SEEDS) if name in baselines.NAMES
                       else tune_method(name, TUNING_SEEDS, args.dtype))
             rep = study.record_result(path, header, name,
                                       {**result, "wall_s": time.perf_counter() - t0})

@@ -35,6 +35,11 @@ reported seeds:
 
 PPO runs under `jax.enable_x64(False)`: brax's wrappers mix float32 and default-dtype arrays, which
 breaks under x64 (and the package turns x64 on at import).
+
+What the studies share about the baselines: their names (`NAMES`), their settings as trainer
+arguments (`trainer_settings`: a horizon in seconds as brax's discount) and the evaluations
+after learning started (`after_initial_evaluation`: brax's trainers evaluate the initial policy
+first, at 0 steps). `gpguided_jax.study.run_baseline` runs one with a study's budget.
 """
 
 from __future__ import annotations
@@ -47,7 +52,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpguided_jax import brax_env, pendulum, swingup
+from gpguided_jax import pendulum, swingup
+
+# brax's trainers beside the methods, in the order the studies' tables list them
+NAMES = ("ppo", "sac")
 
 PPO_DEFAULTS = dict(
     num_envs=16,
@@ -106,6 +114,35 @@ class PPOResult(NamedTuple):
 
 
 SACResult = PPOResult
+
+
+def trainer_settings(settings: dict, dt: float) -> dict:
+    """A baseline's settings as its trainer's keyword arguments: a 'horizon' in seconds becomes
+    brax's `discounting` at `dt` seconds per step (`tasks.discount_for_horizon`), and
+    `grad_updates_per_step` a whole number."""
+    from gpguided_jax import tasks
+
+    out = {k: v for k, v in settings.items() if k != "horizon"}
+    if "horizon" in settings:
+        out["discounting"] = tasks.discount_for_horizon(settings["horizon"], dt)
+    if "grad_updates_per_step" in out:
+        out["grad_updates_per_step"] = int(out["grad_updates_per_step"])
+    return out
+
+
+def after_initial_evaluation(env_steps: np.ndarray, curves: np.ndarray):
+    """The evaluations after learning started: brax's trainers evaluate the initial policy first,
+    at 0 steps, which the methods' curves do not hold, so a final 10% or a first step to a
+    threshold is taken over the others, as for the methods.
+
+    Args:
+      env_steps: (E,) environment steps of the evaluations.
+      curves: (..., E) an evaluation record.
+
+    Returns:
+      (env_steps[1:], curves[..., 1:]).
+    """
+    return np.asarray(env_steps)[1:], np.asarray(curves)[..., 1:]
 
 
 def float32_params(params: pendulum.PendulumParams) -> pendulum.PendulumParams:
@@ -293,6 +330,13 @@ def budget_note(algorithm: str, budget: int, num_evals: int,
     return f"{how}: a budget of {int(budget)} runs {run} steps"
 
 
+def _quiet_brax() -> None:
+    """Imports brax through `brax_env`, which keeps the note mujoco's import prints (its GPU
+    backend is missing) off stdout, where the commands write their output: call it before
+    importing brax's trainers."""
+    from gpguided_jax import brax_env  # noqa: F401
+
+
 def train_ppo(
     pendulum_params: pendulum.PendulumParams,
     num_timesteps: int,
@@ -318,6 +362,7 @@ def train_ppo(
       hidden_layers: hidden sizes of both the policy and the value MLP.
       **ppo_kwargs: overrides of `PPO_DEFAULTS` or further `ppo.train` arguments.
     """
+    _quiet_brax()
     from brax.training.agents.ppo import networks as ppo_networks
     from brax.training.agents.ppo import train as ppo
 
@@ -350,6 +395,7 @@ def train_sac(
     scale sets how much the reward weighs against that entropy. Hyperparameters: `SAC_DEFAULTS`.
     The budget must exceed the replay buffer's prefill (`smallest_budget`; `BudgetError`
     otherwise, before brax compiles anything), and brax rounds it up (`evaluation_steps`)."""
+    _quiet_brax()
     from brax.training.agents.sac import networks as sac_networks
     from brax.training.agents.sac import train as sac
 
@@ -366,6 +412,8 @@ def train_sac(
 def _run_brax(train_fn, pendulum_params, num_timesteps, episode_length, seed, *, num_evals,
               hold_time: float = 1.0, tolerance: float = 0.3, **kwargs) -> PPOResult:
     """One brax trainer on the pendulum (float32, x64 off), with its evaluations recorded."""
+    from gpguided_jax import brax_env
+
     steps, rewards, success = [], [], []
 
     def progress(step, metrics):
@@ -427,6 +475,7 @@ def train_on_task(algorithm: str, env: str, num_timesteps: int, episode_length: 
       hidden_layers: hidden sizes of every MLP.
       **kwargs: overrides of `PPO_DEFAULTS` / `SAC_DEFAULTS`, or further `train` arguments.
     """
+    _quiet_brax()
     if algorithm == "ppo":
         from brax.training.agents.ppo import networks as nets
         from brax.training.agents.ppo import train as trainer
@@ -447,6 +496,8 @@ def train_on_task(algorithm: str, env: str, num_timesteps: int, episode_length: 
     if num_evals < 2:
         raise ValueError(f"num_evals must be >= 2, got {num_evals}")
     check_budget(algorithm, num_timesteps, kwargs)
+    from gpguided_jax import brax_env
+
     steps, returns = [], []
 
     def progress(step, metrics):
@@ -469,12 +520,9 @@ def preset_settings(preset: str, algorithm: str, dt: float) -> dict:
     """The trainer's keyword arguments of `algorithm` as tuned for `preset`
     (`config.BASELINE_PRESETS`; none for a preset without a tuning): a 'horizon' in seconds
     becomes brax's `discounting` at `dt` seconds per step."""
-    from gpguided_jax import config, tasks
+    from gpguided_jax import config
 
-    settings = dict(config.BASELINE_PRESETS.get(preset, {}).get(algorithm, {}))
-    if "horizon" in settings:
-        settings["discounting"] = tasks.discount_for_horizon(settings.pop("horizon"), dt)
-    return settings
+    return trainer_settings(config.BASELINE_PRESETS.get(preset, {}).get(algorithm, {}), dt)
 
 
 def summarise_returns(env_steps: np.ndarray, returns: np.ndarray, threshold: float | None) -> dict:
@@ -494,7 +542,7 @@ def summarise_returns(env_steps: np.ndarray, returns: np.ndarray, threshold: flo
     """
     from gpguided_jax import stats, summaries
 
-    steps, ret = np.asarray(env_steps)[1:], np.asarray(returns, float)[:, 1:]
+    steps, ret = after_initial_evaluation(env_steps, np.asarray(returns, float))
     final = summaries.final_performance(ret)
     lo, hi = stats.bootstrap_ci(final)
     out = dict(seeds=int(ret.shape[0]), final_return_iqm=stats.iqm(final), ci95=[lo, hi],
@@ -532,7 +580,7 @@ def plan_preset(algorithm: str, preset: str, *, env: str | None = None,
     """
     from gpguided_jax import config, tasks
 
-    if algorithm not in ("ppo", "sac"):
+    if algorithm not in NAMES:
         raise ValueError(f"unknown baseline {algorithm!r}; choose 'ppo' or 'sac'")
     if num_evals < 2:
         raise ValueError(f"num_evals must be >= 2, got {num_evals}")
@@ -612,6 +660,8 @@ policy_success_rate = swingup.success_rate
 def ppo_policy_fn(result: PPOResult, params: pendulum.PendulumParams, *, deterministic: bool):
     """A `pendulum.PolicyFn` (key, state) -> torque from a trained PPO policy (call under
     `jax.enable_x64(False)` with float32 pendulum params)."""
+    from gpguided_jax import brax_env
+
     policy = result.make_policy(result.params, deterministic=deterministic)
 
     def policy_fn(key, state):
@@ -659,7 +709,10 @@ def matched_budget_value(
 
 
 __all__ = [
+    "NAMES",
     "BudgetError",
+    "after_initial_evaluation",
+    "trainer_settings",
     "PPO_DEFAULTS",
     "SAC_DEFAULTS",
     "SACResult",

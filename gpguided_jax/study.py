@@ -21,6 +21,10 @@ Here:
   (`run_method`: its records, its environment-steps axis and its wall time, which
   `reproduce` measures), and the resumable record of a study's runs (`run_parts`, `finished`: a
   part runs again only when its settings changed).
+* Baselines (`baselines.NAMES`: brax's PPO and SAC): one per seed on a study's config, with the
+  methods' budget of learning steps and the deterministic policy's evaluations, recorded under
+  the methods' record names (`run_baseline`); a stage of a baseline's tuning
+  (`baseline_stage`, scored as a method's stage is).
 * Reports: `env_steps`, `smoothed`, `steps_to`, `median_ci`, `plot_band`, and the JSON files
   (`read_json`, `write_json`).
 
@@ -46,10 +50,11 @@ from typing import Callable, Iterable, NamedTuple, Sequence
 
 import numpy as np
 
-from gpguided_jax import checkpoints, reproduce, summaries, sweep
+from gpguided_jax import baselines, checkpoints, reproduce, runtime, summaries, sweep
 from gpguided_jax import config as config_lib
 from gpguided_jax import methods as methods_lib
 from gpguided_jax import stats as stats_lib
+from gpguided_jax._x64 import enable_x64
 
 TUNING_SEEDS = (100, 101)
 HELDOUT_SEEDS = tuple(range(1000, 1010))
@@ -63,6 +68,17 @@ def log(msg: str) -> None:
 
 def _silent(msg: str) -> None:
     del msg
+
+
+def set_up(out: str) -> str:
+    """A float64 study stage's process, before its first run: LAPACK single-threaded
+    (`runtime.single_threaded_lapack`), the persistent compile cache, JAX's 64-bit mode; and its
+    output directory `out`, created. Returns `out`."""
+    runtime.single_threaded_lapack()
+    runtime.set_compile_cache(runtime.DEFAULT_COMPILE_CACHE)
+    enable_x64()
+    os.makedirs(out, exist_ok=True)
+    return out
 
 
 # ------------------------------------------------------------------------------------------ files
@@ -257,6 +273,13 @@ def final_success(records: dict) -> dict:
             "reward": float(final(records["eval_reward"]).mean())}
 
 
+def last_success(records: dict) -> dict:
+    """{'success', 'reward'}: the success rate and reward per step of the deterministic policy at
+    the last evaluation, means over seeds (a baseline's evaluations, of many episodes each)."""
+    return {"success": float(np.asarray(records["eval_success_rate"])[:, -1].mean()),
+            "reward": float(np.asarray(records["eval_reward"])[:, -1].mean())}
+
+
 def sweep_stage(configs: list[dict], score: Callable[[dict], dict], *, method: str, preset: str,
                 seeds: Sequence[int], progress: Callable[[str], None] = _silent) -> list[dict]:
     """A stage of a method's tuning as one `sweep.run_sweep` program.
@@ -293,6 +316,26 @@ def sweep_stage(configs: list[dict], score: Callable[[dict], dict], *, method: s
                               seeds=seeds, overrides=common, progress=progress)
         recs = [{k: v[i] for k, v in res.records.items()} for i in range(len(configs))]
     return [{**score(rec), "unhealthy_seeds": unhealthy_seeds(rec)} for rec in recs]
+
+
+def baseline_stage(configs: list[dict], score: Callable[["BaselineRun"], dict], *, name: str,
+                   cfg: config_lib.TrainConfig, seeds: Sequence[int],
+                   num_evals: int) -> list[dict]:
+    """A stage of a baseline's tuning: each configuration's settings run on every seed
+    (`run_baseline`).
+
+    Args:
+      configs: the settings of each configuration (`run_baseline`'s).
+      score: maps one configuration's `BaselineRun` to its scores.
+
+    Returns:
+      Per configuration, its scores and `wall_s` (its seeds' seconds).
+    """
+    out = []
+    for settings in configs:
+        run = run_baseline(name, cfg, seeds, settings, num_evals=num_evals, progress=_silent)
+        out.append({**score(run), "wall_s": run.wall_s})
+    return out
 
 
 # ---------------------------------------------------------------------------------------- heldout
@@ -332,6 +375,64 @@ def run_method(preset: str, method: str, seeds: Sequence[int], run_dir: str, ove
     # episodes, one update later than the deterministic policy's evaluations)
     cfg = config_lib.preset(preset, method=method, dtype=dtype, **overrides)
     return MethodRun(records, env_steps(cfg), float(out["wall_s"][method]))
+
+
+class BaselineRun(NamedTuple):
+    """One baseline's runs (`run_baseline`), one per seed.
+
+    Attributes:
+      records: the deterministic policy's evaluations, (seeds, evaluations) each, under the
+        methods' record names: eval_return on a standard task; eval_success_rate and eval_reward
+        (per step) on the paper's pendulum.
+      env_steps: (evaluations,) the environment steps of each evaluation, the initial policy's
+        (at 0) first (`baselines.after_initial_evaluation` leaves it out).
+      wall_s: seconds of all the seeds' runs, compilation included.
+      seed_wall_s: the same per seed.
+    """
+
+    records: dict
+    env_steps: np.ndarray
+    wall_s: float
+    seed_wall_s: tuple
+
+
+def run_baseline(name: str, cfg: config_lib.TrainConfig, seeds: Sequence[int], settings: dict, *,
+                 num_evals: int, progress: Callable[[str], None] = log) -> BaselineRun:
+    """brax's `name` (`baselines.NAMES`) on `cfg`'s task, one run per seed, with the methods'
+    budget (`learning_steps(cfg)`) and episode length.
+
+    Args:
+      cfg: a study's config; its task (the paper's pendulum: `baselines.train_ppo` / `train_sac`,
+        which record the swing-up success; a standard task: `baselines.train_on_task`), budget
+        and episode length apply.
+      settings: the trainer's settings over `baselines.PPO_DEFAULTS` / `SAC_DEFAULTS`, a
+        'horizon' in seconds as the discount at `cfg`'s control interval
+        (`baselines.trainer_settings`); the evaluations are the deterministic policy's (the mean
+        action), as the methods' eval records are.
+      num_evals: evaluations per run, the initial policy's included.
+      progress: receives a line per seed.
+    """
+    dt = config_lib.control_interval(cfg) if "horizon" in settings else None
+    kwargs = {"deterministic_eval": True, **baselines.trainer_settings(settings, dt)}
+    budget = learning_steps(cfg)
+    records, walls, steps = {}, [], None
+    for seed in seeds:
+        if cfg.env == "pendulum":
+            train = {"ppo": baselines.train_ppo, "sac": baselines.train_sac}[name]
+            r = train(cfg.pendulum, budget, cfg.episode_length, seed, num_evals=num_evals, **kwargs)
+            got = {"eval_success_rate": r.success_rate, "eval_reward": r.reward_per_step}
+        else:
+            r = baselines.train_on_task(name, cfg.env, budget, cfg.episode_length, seed,
+                                        num_evals=num_evals, **kwargs)
+            got = {"eval_return": r.episode_return}
+        for k, v in got.items():
+            records.setdefault(k, []).append(v)
+        walls.append(float(r.wall_time))
+        steps = r.env_steps if steps is None else steps  # every seed's: brax's schedule
+        progress(f"[{name}] seed {seed}: {r.env_steps[-1]} steps, {r.wall_time:.0f}s, "
+                 + ", ".join(f"{k} {v[-1]:.3f}" for k, v in got.items()))
+    return BaselineRun({k: np.stack(v) for k, v in records.items()}, np.asarray(steps),
+                       float(sum(walls)), tuple(walls))
 
 
 def _as_json(obj):

@@ -147,6 +147,17 @@ def test_baseline_summary_against_a_hand_computation():
     assert "steps_to_threshold" not in baselines.summarise_returns(steps, returns, None)
 
 
+def test_trainer_settings_and_the_evaluations_after_learning_started():
+    got = baselines.trainer_settings({"horizon": 0.5, "learning_rate": 0.1,
+                                      "grad_updates_per_step": 8.0}, 0.05)
+    assert got == {"learning_rate": 0.1, "grad_updates_per_step": 8,
+                   "discounting": pytest.approx(math.exp(-0.1), rel=1e-12)}
+    assert isinstance(got["grad_updates_per_step"], int)
+    assert baselines.trainer_settings({"entropy_cost": 0.01}, None) == {"entropy_cost": 0.01}
+    steps, curves = baselines.after_initial_evaluation([0, 10, 20], [[1.0, 2.0, 3.0]])
+    assert steps.tolist() == [10, 20] and curves.tolist() == [[2.0, 3.0]]
+
+
 def test_the_baseline_presets_hold_the_tuned_settings(monkeypatch):
     import json
     import os

@@ -594,9 +594,11 @@ def _model_study():
 
 
 def test_the_presets_hold_the_model_study_s_tuned_settings():
-    """`gpguided reproduce --preset <task> --methods gp_model` runs it as the study did: its base
-    settings, its budget's updates and the settings the tuning chose
-    (docs/results/model/<task>/tuning.json), and the study's runs start from the preset's own."""
+    """`gpguided reproduce --preset <task> --methods gp_model` runs it as the study did: the base
+    settings its tuning ran from, its budget's updates and the settings the tuning chose
+    (docs/results/model/<task>/tuning.json), and the study's runs start from the preset's own.
+    The study reads the settings it does not search from the preset (`model_study.base`), so the
+    preset's are those of the tuning record's base."""
     import json
     import os
 
@@ -606,7 +608,9 @@ def test_the_presets_hold_the_model_study_s_tuned_settings():
         if not os.path.exists(path):
             continue
         with open(path) as f:
-            chosen = json.load(f)["chosen"]
+            record = json.load(f)
+        chosen = record["chosen"]
+        assert study.BASE[task] == pytest.approx(record["base"]), task
         expected = {**study.BASE[task], "num_updates": study.overrides(task, {})["num_updates"],
                     **chosen}
         assert C.METHOD_PRESETS[task]["gp_model"] == pytest.approx(expected), task

@@ -201,6 +201,76 @@ def test_run_method_reads_its_run_and_reproduces_wall_time(tmp_path, monkeypatch
     assert run.env_steps.tolist() == [140, 180, 220]
 
 
+def _fake_brax(calls):
+    """Stand-ins for brax's trainers that record (trainer, budget, episode length, seed, kwargs)
+    and return four evaluations whose values are the seed."""
+    from gpguided_jax import baselines
+
+    steps = np.array([0, 100, 200, 300])
+
+    def pendulum(trainer):
+        def train(params, budget, length, seed, **kw):
+            calls.append((trainer, budget, length, seed, kw))
+            return baselines.PPOResult(steps, np.full(4, -seed / 10), 2.0, None, (),
+                                       np.full(4, seed / 100))
+        return train
+
+    def on_task(name, env, budget, length, seed, **kw):
+        calls.append((f"{name} on {env}", budget, length, seed, kw))
+        return baselines.TaskResult(steps, np.arange(4.0) + seed, 3.0)
+
+    return {"train_ppo": pendulum("ppo"), "train_sac": pendulum("sac"), "train_on_task": on_task}
+
+
+def test_run_baseline_runs_each_seed_with_the_methods_budget(monkeypatch):
+    """The paper's pendulum: brax's pendulum trainer, its success and reward per step under the
+    methods' record names; a standard task: `train_on_task` and its return. The methods' budget
+    of learning steps and episode length, the deterministic policy, a horizon as the discount at
+    the task's step; the wall time summed over the seeds."""
+    from gpguided_jax import baselines, tasks
+
+    calls = []
+    for name, fake in _fake_brax(calls).items():
+        monkeypatch.setattr(baselines, name, fake)
+    cfg = C.preset("tiny", method="reinforce", dtype="float32")
+    run = study.run_baseline("sac", cfg, (5, 7), {"learning_rate": 0.1}, num_evals=4,
+                             progress=lambda m: None)
+    assert [c[:4] for c in calls] == [("sac", 240, 20, 5), ("sac", 240, 20, 7)]
+    assert calls[0][4] == {"deterministic_eval": True, "learning_rate": 0.1, "num_evals": 4}
+    assert set(run.records) == {"eval_success_rate", "eval_reward"}
+    np.testing.assert_allclose(run.records["eval_success_rate"], [[0.05] * 4, [0.07] * 4])
+    assert run.env_steps.tolist() == [0, 100, 200, 300]
+    assert run.wall_s == 4.0 and run.seed_wall_s == (2.0, 2.0)
+    calls.clear()
+    cfg = C.preset("pendulum-v1", method="reinforce")
+    run = study.run_baseline("ppo", cfg, (1,), {"horizon": 0.5, "grad_updates_per_step": 4.0},
+                             num_evals=4, progress=lambda m: None)
+    assert calls[0][:4] == ("ppo on gymnax:Pendulum-v1", study.learning_steps(cfg), 200, 1)
+    dt = tasks.make_task("gymnax:Pendulum-v1").dt
+    assert calls[0][4] == {"deterministic_eval": True, "num_evals": 4, "grad_updates_per_step": 4,
+                           "discounting": tasks.discount_for_horizon(0.5, dt)}
+    assert list(run.records) == ["eval_return"] and run.records["eval_return"].shape == (1, 4)
+    # a stage of its tuning: each configuration on every seed, scored, with its seconds
+    calls.clear()
+    got = study.baseline_stage([{"learning_rate": 0.1}, {"learning_rate": 0.3}],
+                               lambda r: {"score": float(r.records["eval_return"][:, -1].mean())},
+                               name="ppo", cfg=cfg, seeds=(1, 2), num_evals=4)
+    assert got == [{"score": 4.5, "wall_s": 6.0}] * 2 and len(calls) == 4
+    assert study.last_success({"eval_success_rate": [[0.0, 0.5], [1.0, 1.0]],
+                               "eval_reward": [[-3.0, -1.0], [-2.0, -2.0]]}) == {
+        "success": 0.75, "reward": -1.5}
+
+
+def test_set_up_prepares_a_float64_stage_and_its_directory(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(study.runtime, "single_threaded_lapack", lambda: calls.append("lapack"))
+    monkeypatch.setattr(study.runtime, "set_compile_cache", lambda d: calls.append(("cache", d)))
+    monkeypatch.setattr(study, "enable_x64", lambda: calls.append("x64"))
+    out = str(tmp_path / "a" / "b")
+    assert study.set_up(out) == out and (tmp_path / "a" / "b").is_dir()
+    assert calls == ["lapack", ("cache", study.runtime.DEFAULT_COMPILE_CACHE), "x64"]
+
+
 def test_record_result_adds_one_name(tmp_path):
     path = str(tmp_path / "tuning.json")
     study.record_result(path, {"seeds": [100, 101]}, "ppo", {"chosen": {"lr": 1}})

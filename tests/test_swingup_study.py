@@ -8,6 +8,7 @@ import types
 
 import numpy as np
 
+from gpguided_jax import baselines
 from gpguided_jax import config as config_lib
 from gpguided_jax import methods
 from gpguided_jax import study as study_lib
@@ -88,5 +89,5 @@ def test_the_held_out_curves_lie_on_the_environment_steps_axis():
         np.testing.assert_array_equal(steps, study_lib.env_steps(cfg))
         fit = cfg.hyperfit_episodes * cfg.episode_length if cfg.uses_gp else 0
         assert steps[0] == fit and curves[f"{m}_success"].shape[1] == len(steps)
-    for name in study.BASELINES:
+    for name in baselines.NAMES:
         assert curves[f"{name}_steps"][0] == 0  # brax evaluates the initial policy first
