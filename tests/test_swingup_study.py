@@ -8,9 +8,8 @@ import types
 
 import numpy as np
 
-from gpguided_jax import baselines
+from gpguided_jax import baselines, methods
 from gpguided_jax import config as config_lib
-from gpguided_jax import methods
 from gpguided_jax import study as study_lib
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
