@@ -87,6 +87,9 @@ class Method(NamedTuple):
         `check(cfg)` validates them with the config they belong to.
       presets: preset name -> the settings the method was tuned to on it (flat names: shared
         fields and its own settings), applied by `config.preset` after the preset's fields.
+      policy_optimiser: its update takes the shared optax ascent step on the policy's parameters
+        (`TrainState.opt_state`, `policy_gradient.make_optimizer`); False: it keeps no optimiser
+        state (`()`).
     """
 
     name: str
@@ -105,6 +108,7 @@ class Method(NamedTuple):
     targets: Callable[..., Any] | None = None
     settings: type | None = None
     presets: dict[str, dict] = {}
+    policy_optimiser: bool = True
 
     @property
     def uses_gp(self) -> bool:

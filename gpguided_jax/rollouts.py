@@ -101,8 +101,11 @@ def features(prog: Program, states, actions):
     return jax.vmap(prog.task.features)(states, actions)
 
 
-def policy_context(cfg: TrainConfig, gp, kernel) -> policies.PolicyContext:
-    """The `PolicyContext` the training loop gives its policy for a GP state and kernel."""
+def policy_context(cfg: TrainConfig, gp, kernel) -> policies.PolicyContext | None:
+    """The `PolicyContext` the training loop gives its policy for a GP state and kernel; None for
+    a method without a Q-GP (its policy reads none)."""
+    if gp is None:
+        return None
     # lambda_v and the candidate scale are given in (N m)^2 where the GP is at its prior variance.
     sf2 = kernel.signal_variance
     return policies.make_context(

@@ -63,9 +63,10 @@ class TrainState(NamedTuple):
 
     Attributes:
       theta: `PolicyParams`.
-      opt_state: the optax state.
-      gp: `SparseGPState` (capacity M; one slot for a method without a Q-GP).
-      kernel: fitted `KernelParams`.
+      opt_state: the optax state of the policy's ascent step (`()` for a method without one,
+        `Method.policy_optimiser`).
+      gp: `SparseGPState` (capacity M; None for a method without a Q-GP).
+      kernel: fitted `KernelParams` (None for a method without a Q-GP).
       key: PRNG key for the coming updates.
       update_index: () int32, updates done so far (the timestamp of new basis vectors).
       method_state: the method's own state (`Method.init`; `()` for the paper's methods).
@@ -314,8 +315,10 @@ def one_update(prog: Program, cfg: TrainConfig, state: TrainState, roll_out=None
         gp, eps, returns, fired, error_ratio = roll_out(cfg, state, keys)
     theta, opt_state, method_state, own = method.update(prog, cfg, state, Batch(eps, returns, gp))
 
-    n_bv = sparse_gp.num_basis_vectors(gp)
-    fresh = jnp.sum(gp.mask & (gp.timestamps == t))
+    if gp is None:  # no Q-GP: no basis vectors
+        n_bv, fresh = jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32)
+    else:
+        n_bv, fresh = sparse_gp.num_basis_vectors(gp), jnp.sum(gp.mask & (gp.timestamps == t))
     successes = jax.vmap(lambda v, r, e: episode_success(prog, v, cfg, r, e))(
         eps.next_states, eps.rewards, eps.ends)
     eval_success, eval_reward, eval_return = evaluate(prog, key_eval, state.theta, cfg)
@@ -429,24 +432,23 @@ def fit_prior(prog: Program, key, cfg: TrainConfig) -> GPPrior:
 
 
 def initial_state(prog: Program, key, cfg: TrainConfig, prior: GPPrior | None = None) -> TrainState:
-    """The state before the first update: the prior (fitted here unless given; a placeholder for
-    a method without a Q-GP), the initial policy, its optimiser state and the method's own."""
+    """The state before the first update: the prior (fitted here unless given) and its GP for a
+    method with a Q-GP (None for another), the initial policy, its optimiser state (for a method
+    that takes the ascent step) and the method's own."""
     static, method = prog.config, prog.method
     key_fit, key_run = jax.random.split(key)
-    if prior is None:
-        if method.uses_gp:
+    gp = kernel = None
+    if method.uses_gp:
+        if prior is None:
             prior = fit_prior(prog, key_fit, cfg)
-        else:  # unused without a Q-GP
-            prior = GPPrior(kernels.make_kernel_params(jnp.ones(prog.task.feature_dim), dtype=prog.dtype),
-                            jnp.zeros((), prog.dtype))
-    prior = jax.tree_util.tree_map(lambda a: jnp.asarray(a, prog.dtype), prior)
+        prior = jax.tree_util.tree_map(lambda a: jnp.asarray(a, prog.dtype), prior)
+        gp = sparse_gp.init(static.gp_capacity, prog.task.feature_dim, prog.dtype,
+                            prior_mean=prior.mean)
+        kernel = prior.kernel
     theta = initial_theta(prog, cfg)
-    opt_state = make_optimizer(cfg).init(theta)
-    # a method that never reads its GP keeps a one-slot placeholder: the state's structure is small
-    capacity = static.gp_capacity if method.uses_gp else 1
-    gp = sparse_gp.init(capacity, prog.task.feature_dim, prog.dtype, prior_mean=prior.mean)
+    opt_state = make_optimizer(cfg).init(theta) if method.policy_optimiser else ()
     method_state = method.init(prog, jax.random.fold_in(key_fit, 2), cfg)
-    return TrainState(theta, opt_state, gp, prior.kernel, key_run, jnp.zeros((), jnp.int32),
+    return TrainState(theta, opt_state, gp, kernel, key_run, jnp.zeros((), jnp.int32),
                       method_state)
 
 

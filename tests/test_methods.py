@@ -160,6 +160,7 @@ HILL_CLIMB = methods.Method(
     update=_hill_climb_update, records=("best_return", "accepted", "step_size"),
     explorations=("white",), compare_with=("reinforce",),
     explain_exploration="hill_climb explores by its weights", settings=HillClimbSettings,
+    policy_optimiser=False,
     # its own number of updates on the tiny preset (the paper's methods keep theirs)
     presets={"tiny": {"num_updates": 4, "climb_patience": 3}})
 

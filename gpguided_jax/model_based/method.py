@@ -240,4 +240,4 @@ methods.register(methods.Method(
     name="gp_model", policy=ACTOR.policy, prior="none", init=init, update=update, records=RECORDS,
     explorations=("white", "ou", "coloured"), compare_with=("reinforce", "gp_pg"), check=check,
     explain_exploration="'parameter' noise changes the controller the model optimises",
-    eval_held=True, settings=ModelSettings, presets=PRESETS))
+    eval_held=True, settings=ModelSettings, presets=PRESETS, policy_optimiser=False))
