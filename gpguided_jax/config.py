@@ -273,14 +273,14 @@ FIELD_GROUPS: dict[str, tuple[str, ...]] = {
 
 
 def group_of(field: str) -> str:
-    """The `FIELD_GROUPS` group of a `TrainConfig` field, or the name of the method whose setting
-    it is (`KeyError` for neither)."""
+    """The `FIELD_GROUPS` group of a `TrainConfig` field, or the name of the (first) method whose
+    setting it is (`KeyError` for neither)."""
     for group, fields in FIELD_GROUPS.items():
         if field in fields:
             return group
     owners = methods.setting_owners()
     if field in owners:
-        return owners[field]
+        return owners[field][0]
     raise KeyError(field)
 
 
@@ -339,7 +339,7 @@ def _own_settings(method: str, flat: dict) -> dict:
     unknown = set(flat) - set(owners)
     if unknown:
         raise TypeError(f"unknown TrainConfig field(s) or method setting(s): {sorted(unknown)}")
-    return {k: v for k, v in flat.items() if owners[k] == method}
+    return {k: v for k, v in flat.items() if method in owners[k]}
 
 _POSITIVE = ("learning_rate", "max_grad_norm", "success_tolerance", "min_std", "max_std",
              "age_scale", "guided_variance_scale",

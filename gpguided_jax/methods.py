@@ -135,9 +135,9 @@ def register(method: Method, *, replace: bool = False) -> Method:
         raise ValueError(f"method {method.name!r}: a prior needs the fields its fit reads")
     if method.name in _REGISTRY and not replace:
         raise ValueError(f"method {method.name!r} is already registered")
-    if method.settings is not None:
+    if method.settings is not None:  # another class may not take its flat names (one may share it)
         taken = {f: m.name for m in _REGISTRY.values() if m.name != method.name and m.settings
-                 for f in m.settings.FLAT.values()}
+                 and m.settings is not method.settings for f in m.settings.FLAT.values()}
         clash = sorted(set(method.settings.FLAT.values()) & set(taken))
         if clash:
             raise ValueError(f"method {method.name!r}: settings {clash} are already "
@@ -207,7 +207,12 @@ def shares_program(a: Method, b: Method) -> bool:
             and a.targets is b.targets)
 
 
-def setting_owners() -> dict[str, str]:
-    """flat setting name -> the registered method whose settings it is (`Method.settings`)."""
-    return {f: m.name for m in _REGISTRY.values() if m.settings is not None
-            for f in m.settings.FLAT.values()}
+def setting_owners() -> dict[str, tuple[str, ...]]:
+    """flat setting name -> the registered methods whose settings it is (`Method.settings`; methods
+    may share a settings class), in the registry's order."""
+    out: dict[str, tuple[str, ...]] = {}
+    for name in names():
+        cls = _REGISTRY[name].settings
+        for f in () if cls is None else cls.FLAT.values():
+            out[f] = out.get(f, ()) + (name,)
+    return out

@@ -165,9 +165,10 @@ def run_sweep(
       `SweepResult`.
     """
     field = resolve_param(param)
-    owner = methods.setting_owners().get(field)
-    if owner is not None and owner != method:
-        raise ValueError(f"cannot sweep {field!r} for {method}: it is a setting of {owner}")
+    owners = methods.setting_owners().get(field, (method,))
+    if method not in owners:
+        raise ValueError(f"cannot sweep {field!r} for {method}: it is a setting of "
+                         f"{' and '.join(owners)}")
     values = [float(v) for v in values]
     seeds = [int(s) for s in seeds]
     if not values:

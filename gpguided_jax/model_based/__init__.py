@@ -51,10 +51,11 @@ from gpguided_jax.model_based.method import (
     ModelSettings,
     init,
     learns_reward,
+    make_method,
     plan_steps,
     update,
 )
-from gpguided_jax.model_based.objectives import Objective, stated_reward
+from gpguided_jax.model_based.objectives import OBJECTIVES, Objective, stated_reward
 from gpguided_jax.model_based.optimise import OPTIMISERS, Optimiser
 from gpguided_jax.model_based.optimise import optimise as optimise_controller
 from gpguided_jax.model_based.rollout import simulate
@@ -65,11 +66,11 @@ EXPLORATIONS = tuple(USES)
 OPTIMIZERS = tuple(OPTIMISERS)
 
 __all__ = [
-    "EXPLORATIONS", "JITTER", "OPTIMISERS", "OPTIMIZERS", "RECORDS", "USES", "Actor", "ModelData",
-    "ModelSettings", "Objective", "Optimiser", "Plan", "SparseModel", "Uncertainty", "actor",
-    "build", "condition", "data", "decision_rewards", "decisions", "empty_data", "fast_variance",
-    "farthest_points", "gp", "init", "jitter_floor", "k_star", "learns_reward", "make_plan",
-    "method", "next_of", "objectives", "optimise", "optimise_controller", "plan_steps",
-    "predict", "refit", "rollout", "sample_weights", "simulate", "stated_reward", "take_in",
-    "targets_of", "uncertainty", "update", "variance_factors", "wrap",
+    "EXPLORATIONS", "JITTER", "OBJECTIVES", "OPTIMISERS", "OPTIMIZERS", "RECORDS", "USES", "Actor",
+    "actor", "build", "condition", "data", "decision_rewards", "decisions", "empty_data",
+    "farthest_points", "fast_variance", "gp", "init", "jitter_floor", "k_star", "learns_reward",
+    "make_method", "make_plan", "method", "ModelData", "ModelSettings", "next_of", "Objective",
+    "objectives", "optimise", "optimise_controller", "Optimiser", "Plan", "plan_steps", "predict",
+    "refit", "rollout", "sample_weights", "simulate", "SparseModel", "stated_reward", "take_in",
+    "targets_of", "Uncertainty", "uncertainty", "update", "variance_factors", "wrap",
 ]

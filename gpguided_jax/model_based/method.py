@@ -18,7 +18,8 @@ and the exploration noise, as for every method) then does three things:
    once per update (`uncertainty.make_plan`, under the settings' use of the uncertainty).
 
 The actor (`actor.LEARNT_CONTROLLER`) then acts with the optimised controller in the next
-update's episodes.
+update's episodes. `make_method` declares the method with another actor (a planner that acts),
+under another name, sharing these settings.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import jax.numpy as jnp
 from gpguided_jax import config, exploration, hyperfit, methods, rollouts, tasks
 from gpguided_jax import settings as settings_lib
 from gpguided_jax.model_based import objectives, uncertainty
-from gpguided_jax.model_based.actor import LEARNT_CONTROLLER
+from gpguided_jax.model_based.actor import LEARNT_CONTROLLER, Actor
 from gpguided_jax.model_based.data import (
     ModelData,
     decision_rewards,
@@ -46,7 +47,6 @@ from gpguided_jax.model_based.optimise import OPTIMISERS, optimise
 
 RECORDS = ("model_return", "model_gain", "model_error", "model_reward_error", "model_std",
            "model_lengthscale_action", "model_data")
-ACTOR = LEARNT_CONTROLLER
 
 
 @settings_lib.declare(static=("capacity", "inducing", "fit_subset", "fit_steps", "particles",
@@ -66,9 +66,9 @@ class ModelSettings:
       exploration: the use of the model's uncertainty in them (`uncertainty.USES`: 'mean',
         'sample', 'thompson', 'optimistic').
       optimizer: the controller's optimiser (`optimise.OPTIMISERS`: 'adam', 'lbfgs').
-      reward: where the planning objective's reward comes from (`objectives.REWARDS`): 'stated'
-        (the task's `reward_fn`), 'learned' (one more GP output, learnt with the dynamics), or
-        'auto' (stated where the task states it, learned otherwise).
+      reward: the planning objective (`objectives.OBJECTIVES`): 'stated' (the task's
+        `reward_fn`), 'learned' (one more GP output, learnt with the dynamics), or 'auto' (stated
+        where the task states it, learned otherwise).
 
     Traced:
       learning_rate: Adam's step size on the simulated return.
@@ -96,7 +96,7 @@ class ModelSettings:
         flat = type(self).FLAT
         for f, choices, what in (("exploration", tuple(uncertainty.USES), "model exploration"),
                                  ("optimizer", tuple(OPTIMISERS), "model optimiser"),
-                                 ("reward", objectives.REWARDS, "model reward")):
+                                 ("reward", objectives.names(), "model reward")):
             settings_lib.choice(flat[f], getattr(self, f), choices, what)
         for f in ("capacity", "inducing", "fit_subset", "fit_steps", "particles", "steps"):
             settings_lib.integer(flat[f], getattr(self, f), 1)
@@ -104,7 +104,7 @@ class ModelSettings:
         settings_lib.traced(flat["learning_rate"], self.learning_rate, positive=True)
         settings_lib.traced(flat["end_softness"], self.end_softness, positive=True)
         settings_lib.traced(flat["beta"], self.beta, non_negative=True)
-        if self.reward == "stated" and tasks.make_task(cfg.env).reward_fn is None:
+        if self.reward == objectives.STATED.name and tasks.make_task(cfg.env).reward_fn is None:
             settings_lib.fail(flat["reward"], f"'stated' plans with the task's reward as a "
                               f"function of the transition, which {cfg.env} does not state "
                               f"(tasks.Task.reward_fn); 'learned' or 'auto' learns it")
@@ -171,7 +171,16 @@ def init(prog, key, cfg) -> ModelData:
     return empty_data(capacity, task.feature_dim, outputs, prog.dtype, hallucination)
 
 
-def update(prog, cfg, state, batch):
+def make_update(actor: Actor = LEARNT_CONTROLLER):
+    """gp_model's improvement step with `actor` acting in the real episodes after it."""
+
+    def update(prog, cfg, state, batch):
+        return _update(prog, cfg, state, batch, actor)
+
+    return update
+
+
+def _update(prog, cfg, state, batch, actor: Actor):
     """Steps 3-4 of gp_model: take in, refit, condition, optimise (module notes)."""
     task, own = prog.task, cfg.settings
     objective = objectives.for_task(task, own.reward)
@@ -214,7 +223,7 @@ def update(prog, cfg, state, batch):
         optimistic=use.hallucinates, optimizer=own.optimizer, end_softness=own.end_softness,
         objective=objective)
     data = data._replace(hallucination=halluc)
-    theta = ACTOR.act_with(prog, cfg, state.theta, params)
+    theta = actor.act_with(prog, cfg, state.theta, params)
     kern = jax.vmap(hyperfit.from_log)(data.log_kernels)
     records = dict(
         model_return=after,
@@ -236,8 +245,22 @@ def check(cfg) -> None:
                          f"the episode ({cfg.episode_length}); gp_model models one decision")
 
 
-methods.register(methods.Method(
-    name="gp_model", policy=ACTOR.policy, prior="none", init=init, update=update, records=RECORDS,
-    explorations=("white", "ou", "coloured"), compare_with=("reinforce", "gp_pg"), check=check,
-    explain_exploration="'parameter' noise changes the controller the model optimises",
-    eval_held=True, settings=ModelSettings, presets=PRESETS, policy_optimiser=False))
+update = make_update()
+
+
+def make_method(name: str = "gp_model", actor: Actor = LEARNT_CONTROLLER,
+                **declared) -> methods.Method:
+    """gp_model's `methods.Method` with `actor`, its settings (`ModelSettings`, shared by every
+    method made here) and its tuned presets; `declared` replaces further declarations (a variant
+    registered under another name starts without gp_model's presets)."""
+    return methods.Method(**{**dict(
+        name=name, policy=actor.policy, prior="none", init=init,
+        update=update if actor is LEARNT_CONTROLLER else make_update(actor), records=RECORDS,
+        explorations=("white", "ou", "coloured"), compare_with=("reinforce", "gp_pg"),
+        check=check, explain_exploration="'parameter' noise changes the controller the model "
+                                         "optimises",
+        eval_held=True, settings=ModelSettings, presets=PRESETS if name == "gp_model" else {},
+        policy_optimiser=False), **declared})
+
+
+methods.register(make_method())

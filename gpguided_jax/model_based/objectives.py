@@ -1,7 +1,8 @@
 """gp_model's planning objective: the reward its simulated roll-outs sum (design:
 docs/design.md#model).
 
-An `Objective` is a value passed to the roll-out (`rollout.simulate`), not a branch inside it:
+An `Objective` is a value passed to the roll-out (`rollout.simulate`), not a branch inside it;
+`OBJECTIVES` names them for `ModelSettings.reward`:
 
   STATED   the task's own statement as a function of the transition (`Task.reward_fn`);
   LEARNED  one more GP output on the same input (z, a), whose target is the reward of a decision
@@ -9,7 +10,8 @@ An `Objective` is a value passed to the roll-out (`rollout.simulate`), not a bra
            dynamics' outputs. The roll-out reads a decision's reward from that output (its mean,
            or the particle's drawn function).
 
-A new objective (a cost on a declared target, a survival margin) is a new `Objective`.
+A new objective (a cost on a declared target, a survival margin) is a new `Objective`, added to
+`OBJECTIVES` under its name.
 """
 
 from __future__ import annotations
@@ -62,14 +64,18 @@ def _learned(task, hold, obs, action, nxt, p_end, outputs):
 
 STATED = Objective("stated", False, _stated)
 LEARNED = Objective("learned", True, _learned)
-# where the reward comes from (`ModelSettings.reward`): the task's statement, a learnt GP output,
-# or 'auto': the first where the task states one
-REWARDS = ("auto", "stated", "learned")
+OBJECTIVES: dict[str, Objective] = {o.name: o for o in (STATED, LEARNED)}
+AUTO = "auto"  # the task's stated reward where it states one, else the learnt one
+
+
+def names() -> tuple[str, ...]:
+    """The choices of `ModelSettings.reward`: 'auto' and every objective's name."""
+    return (AUTO, *OBJECTIVES)
 
 
 def for_task(task, reward: str) -> Objective:
-    """The objective of `reward` (`REWARDS`) on `task`: 'auto' is STATED where the task states its
-    reward, LEARNED otherwise."""
-    if reward == "learned" or (reward == "auto" and task.reward_fn is None):
-        return LEARNED
-    return STATED
+    """The objective named `reward` (`names()`) on `task`: 'auto' is STATED where the task states
+    its reward, LEARNED otherwise."""
+    if reward == AUTO:
+        return LEARNED if task.reward_fn is None else STATED
+    return OBJECTIVES[reward]
