@@ -133,6 +133,7 @@ def hill_climb(monkeypatch):
     methods.unregister(HILL_CLIMB.name)
 
 
+@pytest.mark.training
 def test_a_method_registered_in_a_test_runs_through_every_driver(tmp_path, hill_climb):
     """reproduce (a chunk, then resumed from its checkpoint), its results file and summaries, and
     a sweep take the registered method as they take the paper's, beside REINFORCE with another
@@ -195,6 +196,7 @@ def test_reproduce_builds_the_shared_program_of_the_methods_that_accept_the_conf
         C.preset("tiny", method="guided_direction", exploration="ou")
 
 
+@pytest.mark.training
 def test_each_method_runs_with_the_prior_fitted_from_its_own_settings(tmp_path, monkeypatch):
     """A method whose tuned settings change the fit's data (here its discount) runs with the
     prior fitted on its own data, and the methods whose fit inputs agree share one fit. The
