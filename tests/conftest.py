@@ -22,17 +22,19 @@
   session-scoped fixtures on one worker; where xdist's grouping was lost, the grouped tests fail
   saying so (`pytest_collection_modifyitems` below). The long modules are collected first, so
   that the workers end together.
-* Two tiers. A long test (tens of seconds on 2 cores, measured with `--durations=0`) is marked
-  `slow`, or with the marker of its kind, which implies `slow` (`LONG_KINDS`, added in
-  `pytest_collection_modifyitems` below): `cli` (the command line, an experiment script or the
-  README's code run end to end in a subprocess), `notebooks` (a notebook executed in a kernel),
-  `distributed` (two processes or two host devices), `training` (training in the test's process:
-  whole runs, their compiled parts, sweeps, the baselines). A long test of none of these kinds
-  (long numerical streams, property searches) is marked `slow` alone. `make test` runs the fast
-  tier, `-m "not slow"`; `make test-all` (and CI) runs every test. pyproject.toml registers the
-  markers, and `--strict-markers` makes a misspelt one an error. The tests of an `xdist_group`
-  whose session-scoped fixture is long are in the same tier, so that the fast tier never
-  computes a fixture for a few of them.
+* Two tiers: `make test` runs the fast one, `-m "not slow"`, so that a change is checked in a
+  couple of minutes on 2 cores; `make test-all` (and CI) runs every test. The tests it leaves out,
+  the longest by `--durations=0`, are marked `slow`, or with the marker of their kind, which
+  implies `slow` (`LONG_KINDS`, added in `pytest_collection_modifyitems` below): `cli` (the
+  command line, an experiment script or the README's code end to end in a subprocess),
+  `notebooks` (a notebook executed in a kernel), `distributed` (two processes or two host
+  devices), `training` (training in the test's process: runs of the training loop or of its
+  updates, sweeps, the baselines' PPO and SAC). A long test of none of these kinds (the sparse
+  GP's long streams and 80-bit replays, property searches, Monte Carlo, finite-difference and
+  `check_grads` comparisons, hyperparameter and model fits) is marked `slow` alone.
+  pyproject.toml registers the markers, and `--strict-markers` makes a misspelt one an error
+  (tests/test_tiers.py). The tests of an `xdist_group` whose shared fixture is long are all
+  slow, so that the fast tier never computes such a fixture for a few of them.
 """
 
 import functools
