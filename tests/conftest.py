@@ -31,7 +31,8 @@
   devices), `training` (training in the test's process: runs of the training loop or of its
   updates, sweeps, the baselines' PPO and SAC). A long test of none of these kinds (the sparse
   GP's long streams and 80-bit replays, property searches, Monte Carlo, finite-difference and
-  `check_grads` comparisons, hyperparameter and model fits) is marked `slow` alone.
+  `check_grads` comparisons, hyperparameter and model fits, jit and vmap against the plain
+  function) is marked `slow` alone.
   pyproject.toml registers the markers, and `--strict-markers` makes a misspelt one an error
   (tests/test_tiers.py). The tests of an `xdist_group` whose shared fixture is long are all
   slow, so that the fast tier never computes such a fixture for a few of them.

@@ -310,6 +310,7 @@ def test_check_grads_log_prob(policy_name, controller_name):
 # ------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_gibbs_selection_frequencies_chi_square():
     """20 000 selections vs softmax(beta E) at fixed candidates; chi-square at alpha = 0.001."""
     controller = _CONTROLLERS["linear"]

@@ -500,6 +500,7 @@ def test_age_function_guards():
 # --- transforms, compilation, numerics ------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_jit_vmap_and_plain_agree_and_no_recompile():
     capacity, n = 10, 30
     streams = [_data(n, s) for s in range(3)]
@@ -535,6 +536,7 @@ def test_jit_vmap_and_plain_agree_and_no_recompile():
     assert jitted._cache_size() == 1
 
 
+@pytest.mark.slow
 def test_sweep_over_age_penalty_is_one_vmap():
     xs, ys = _data(60, 6)
     lams = jnp.array([0.0, 1.0, 100.0])
