@@ -23,19 +23,19 @@
   saying so (`pytest_collection_modifyitems` below). The long modules are collected first, so
   that the workers end together.
 * Two tiers: `make test` runs the fast one, `-m "not slow"`, so that a change is checked in a
-  couple of minutes on 2 cores; `make test-all` (and CI) runs every test. The tests it leaves out,
-  the longest by `--durations=0`, are marked `slow`, or with the marker of their kind, which
-  implies `slow` (`LONG_KINDS`, added in `pytest_collection_modifyitems` below): `cli` (the
-  command line, an experiment script or the README's code end to end in a subprocess),
-  `notebooks` (a notebook executed in a kernel), `distributed` (two processes or two host
-  devices), `training` (training in the test's process: runs of the training loop or of its
-  updates, sweeps, the baselines' PPO and SAC). A long test of none of these kinds (the sparse
-  GP's long streams and 80-bit replays, property searches, Monte Carlo, finite-difference and
-  `check_grads` comparisons, hyperparameter and model fits, jit and vmap against the plain
-  function) is marked `slow` alone.
-  pyproject.toml registers the markers, and `--strict-markers` makes a misspelt one an error
-  (tests/test_tiers.py). The tests of an `xdist_group` whose shared fixture is long are all
-  slow, so that the fast tier never computes such a fixture for a few of them.
+  couple of minutes on 2 cores; `make test-all` (and CI) runs every test. The tests that
+  `make test` leaves out, the longest by `--durations=0`, are marked `slow`, or with the marker
+  of their kind, which implies `slow` (`LONG_KINDS`, added in `pytest_collection_modifyitems`
+  below): `cli` (the command line, an experiment script or the README's code end to end in a
+  subprocess), `notebooks` (a notebook executed in a kernel), `distributed` (two processes or
+  two host devices), `training` (training in the test's process: runs of the training loop or of
+  its updates, sweeps, the baselines' PPO and SAC). A long test of none of these kinds (the
+  sparse GP's long streams and 80-bit replays, property searches, Monte Carlo, finite-difference
+  and `check_grads` comparisons, hyperparameter and model fits, jit and vmap against the plain
+  function) is marked `slow` alone. pyproject.toml registers the markers, and `--strict-markers`
+  makes a misspelt one an error (tests/test_tiers.py). The tests of an `xdist_group` whose shared
+  fixture is long are all slow, so that the fast tier never computes such a fixture for a few of
+  them.
 """
 
 import functools
@@ -147,7 +147,7 @@ _UNGROUPED = []  # xdist_group tests that this worker's xdist failed to group
 @pytest.hookimpl(wrapper=True)
 def pytest_collection_modifyitems(config, items):
     """Marks every test of a kind in `LONG_KINDS` `slow` too, before pytest's `-m` deselects by
-    marker (hence a wrapper: this part runs before every other implementation of the hook).
+    marker (hence a wrapper: this part runs before the hook's other implementations).
     Then, after the others (xdist's included), puts the long modules first (`_LONG_MODULES`). In
     an xdist worker under `--dist loadgroup`, every test with an `xdist_group` mark must have the
     group appended to its node id (``...@group``): that suffix is all xdist's scheduler groups
