@@ -1,6 +1,6 @@
 # Two commands for a fresh machine with only python3 and make:
 #   make run    the main job: the paper's Fig. 5 reproduction (4 methods x 100 seeds, float64)
-#   make test   the test suite
+#   make test   the fast tests (make test-all: every test, as CI runs them)
 # make results regenerates the result files of the documentation's tables (docs/results/), make
 # figures the figures', and each study has its own target: make swingup, make standard, make
 # exploration and make model; make docs builds the documentation site into site/.
@@ -15,7 +15,8 @@ SEEDS ?= 100
 SEED_START ?= 1000
 CONSISTENCY_SEEDS := $(shell seq $(SEED_START) $$(($(SEED_START) + 9)))
 
-.PHONY: run results figures swingup standard exploration model demo test lint bench docs clean-venv
+.PHONY: run results figures swingup standard exploration model demo test test-all lint bench docs \
+	clean-venv
 
 $(STAMP): pyproject.toml requirements.lock
 	python3 -m venv $(VENV)
@@ -122,7 +123,12 @@ demo: $(STAMP)
 # Bytecode is written on first import even where PYTHONDONTWRITEBYTECODE is set: the suite starts
 # many Python processes (its subprocesses, notebook kernels), and without it each one compiled
 # jax, brax and scipy from source again.
+# test leaves out the tests marked slow (the long ones: tests/conftest.py), so that a change is
+# checked in a few minutes; test-all runs them all.
 test: $(STAMP)
+	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -q -n 2 --dist loadgroup --durations=15 -m "not slow" tests
+
+test-all: $(STAMP)
 	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -q -n 2 --dist loadgroup --durations=15 tests
 
 lint: $(STAMP)

@@ -22,6 +22,20 @@
   session-scoped fixtures on one worker; where xdist's grouping was lost, the grouped tests fail
   saying so (`pytest_collection_modifyitems` below). The long modules are collected first, so
   that the workers end together.
+* Two tiers: `make test` runs the fast one, `-m "not slow"`, so that a change is checked in a
+  couple of minutes on 2 cores; `make test-all` (and CI) runs every test. The tests that
+  `make test` leaves out, the longest by `--durations=0`, are marked `slow`, or with the marker
+  of their kind, which implies `slow` (`LONG_KINDS`, added in `pytest_collection_modifyitems`
+  below): `cli` (the command line, an experiment script or the README's code end to end in a
+  subprocess), `notebooks` (a notebook executed in a kernel), `distributed` (two processes or
+  two host devices), `training` (training in the test's process: runs of the training loop or of
+  its updates, sweeps, the baselines' PPO and SAC). A long test of none of these kinds (the
+  sparse GP's long streams and 80-bit replays, property searches, Monte Carlo, finite-difference
+  and `check_grads` comparisons, hyperparameter and model fits, jit and vmap against the plain
+  function) is marked `slow` alone. pyproject.toml registers the markers, and `--strict-markers`
+  makes a misspelt one an error (tests/test_tiers.py). The tests of an `xdist_group` whose shared
+  fixture is long are all slow, so that the fast tier never computes such a fixture for a few of
+  them.
 """
 
 import functools
@@ -124,18 +138,27 @@ _LONG_MODULES = ("test_distributed.py", "test_tasks.py", "test_notebooks.py", "t
                  "test_sweep.py", "test_critic.py", "test_methods.py", "test_sparse_gp.py")
 
 
+# The kinds of long test (markers registered in pyproject.toml), each of which implies `slow`.
+LONG_KINDS = ("cli", "notebooks", "distributed", "training")
+
 _UNGROUPED = []  # xdist_group tests that this worker's xdist failed to group
 
 
-@pytest.hookimpl(trylast=True)
+@pytest.hookimpl(wrapper=True)
 def pytest_collection_modifyitems(config, items):
-    """Puts the long modules first (`_LONG_MODULES`). In an xdist worker under `--dist
-    loadgroup`, every test with an `xdist_group` mark must have the group appended to its node id
-    (``...@group``): that suffix is all xdist's scheduler groups by. pytest 9.2 ignores xdist
-    3.8's way of appending it (pytest-dev/pytest-xdist#1386, hence `pytest<9.2` in
-    pyproject.toml), and the groups were split over the workers without a word, each worker
-    computing the shared fixtures again (the suite took a minute longer). Such tests now fail,
-    saying why (an error raised here, in a worker, is not shown)."""
+    """Marks every test of a kind in `LONG_KINDS` `slow` too, before pytest's `-m` deselects by
+    marker (hence a wrapper: this part runs before the hook's other implementations).
+    Then, after the others (xdist's included), puts the long modules first (`_LONG_MODULES`). In
+    an xdist worker under `--dist loadgroup`, every test with an `xdist_group` mark must have the
+    group appended to its node id (``...@group``): that suffix is all xdist's scheduler groups
+    by. pytest 9.2 ignores xdist 3.8's way of appending it (pytest-dev/pytest-xdist#1386, hence
+    `pytest<9.2` in pyproject.toml), and the groups were split over the workers without a word,
+    each worker computing the shared fixtures again (the suite took a minute longer). Such tests
+    now fail, saying why (an error raised here, in a worker, is not shown)."""
+    for item in items:
+        if any(item.get_closest_marker(kind) for kind in LONG_KINDS):
+            item.add_marker(pytest.mark.slow)
+    yield
     rank = {name: i for i, name in enumerate(_LONG_MODULES)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable within a module
     if getattr(config.option, "loadgroup", False):  # set by xdist, in its workers only

@@ -75,6 +75,7 @@ def test_gp_surface_equals_predict_at_the_controller_action():
     assert np.all(np.asarray(var) >= 0) and np.all(np.asarray(var) <= 2.0 + 1e-12)
 
 
+@pytest.mark.cli
 def test_figure_script_runs_end_to_end(tmp_path):
     run_script(["experiments/fig2_fig4_coverage.py", "--preset", "tiny", "--seeds", "2",
                 "--num-updates", "2", "--checkpoints", "2", "--eval-episodes", "2", "--grid", "7",

@@ -80,6 +80,7 @@ def test_matched_budget_value():
     assert np.all(np.isnan(baselines.matched_budget_value(x, y, 1000)))
 
 
+@pytest.mark.training
 def test_train_ppo_tiny_budget_returns_finite_curve():
     """brax's own PPO trainer (`ppo.train`) on `brax_env.PendulumEnv`, through `train_ppo`: the
     environment's brax interface end to end (it was a test of its own in test_brax_env.py)."""
@@ -103,6 +104,7 @@ def test_train_ppo_tiny_budget_returns_finite_curve():
     assert jax.config.jax_enable_x64  # train_ppo leaves the package's float64 setting as it was
 
 
+@pytest.mark.training
 def test_train_sac_tiny_budget_returns_finite_curve_and_success():
     params = pendulum.make_params(start_mean=(0.0, 0.0), start_std=(0.1, 0.1))
     result = baselines.train_sac(params, 401, 250, seed=0, num_evals=2, num_envs=4,
@@ -338,6 +340,7 @@ def test_the_steps_run_agree_with_what_brax_recorded_in_the_studies():
             recorded, err_msg=name)
 
 
+@pytest.mark.training
 def test_gpguided_baseline_runs_sac_on_a_gymnax_task(tmp_path, capsys):
     """`gpguided baseline sac` at tiny sizes on gymnax's Pendulum-v1 with the tiny preset's budget:
     the files it writes agree with each other and with its summary line."""

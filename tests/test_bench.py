@@ -2,7 +2,10 @@
 
 import json
 
+import pytest
 from conftest import ROOT, run_script
+
+pytestmark = pytest.mark.cli
 
 
 def test_gpguided_bench_quick_writes_the_report_the_readme_table_is_made_from(tmp_path):

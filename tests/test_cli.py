@@ -166,6 +166,7 @@ def _check_cli_run(proc, out, dtype, method, kept=False):
     assert not leftovers, leftovers
 
 
+@pytest.mark.training
 def test_corrupt_checkpoint_and_kernels_are_set_aside(tmp_path):
     kw = dict(REPRODUCE_KW, methods=["gp_pg"], keep_checkpoints=True)
     first = R.reproduce(out_dir=str(tmp_path), progress=lambda m: None, **kw)
@@ -189,6 +190,7 @@ def test_corrupt_checkpoint_and_kernels_are_set_aside(tmp_path):
     assert any("missing or mis-shaped" in m for m in msgs), msgs
 
 
+@pytest.mark.cli
 def test_a_repeated_run_loads_its_programs_from_the_compile_cache(tmp_path):
     """The whole pipeline from the command line, in float32 with JAX's x64 mode off (float64: the
     multi-device runs of tests/test_train.py and tests/test_distributed.py), twice with one

@@ -296,6 +296,7 @@ def critic_registered():
     return "gp_critic"
 
 
+@pytest.mark.training
 def test_with_no_critic_steps_it_is_gp_pg_bit_for_bit(critic_registered):
     """On the same update's batch (steps 1-2 are shared), gp_critic's step with K = 0 is gp_pg's
     bit for bit; with K > 0 it moves further, and with critic_optimism elsewhere."""
@@ -388,6 +389,7 @@ def _bandit_task():
                       obs_scale=np.ones(1))
 
 
+@pytest.mark.training
 def test_on_a_bandit_it_reaches_the_optimum_in_fewer_updates_than_gp_pg(critic_registered):
     """The deterministic action c = tanh(b) reaches within 0.05 of A* = 0.6; gp_critic in fewer
     updates than gp_pg at the same learning rate, on each of two seeds."""
@@ -456,6 +458,7 @@ def test_lambda_returns_against_their_forward_view(dtype, lam):
                                **TOL[dtype])
 
 
+@pytest.mark.training
 def test_lambda_targets_bootstrap_with_the_gp_the_update_started_from():
     """`critic_targets='lambda'`: the values are mu_Q of the update's starting GP (NumPy, from
     its definition) at each next state with the next action, the controller's action where the

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from conftest import ROOT, TWO_DEVICE_ARGS, fast_compile_env
 
-pytestmark = pytest.mark.xdist_group("two_devices")  # they share the fixture two_device_run
+# the group's tests share the fixture two_device_run
+pytestmark = [pytest.mark.distributed, pytest.mark.xdist_group("two_devices")]
 FIELDS = ("mean_reward", "grad_norm", "exploration_std", "num_basis_vectors", "gp_guard")
 
 

@@ -181,6 +181,7 @@ def _quick_start():
     return match.group(1)
 
 
+@pytest.mark.cli
 def test_the_readme_quick_start_runs_as_printed(tmp_path):
     """Executed exactly as printed, in a fresh process with the repository on the path (compiled
     fast, as the other end-to-end tests: `conftest.fast_compile_env`)."""

@@ -149,6 +149,7 @@ def _exact_gp_at_state(actions, targets, hyper):
     return sparse_gp.exact_state(xs, targets, hyper, jitter=1e-10)
 
 
+@pytest.mark.slow
 @requires_x64
 def test_unbiased_fixed_noise_reinforce_and_gp_estimators(capsys):
     controller = controllers.linear_controller()
@@ -198,6 +199,7 @@ def test_unbiased_fixed_noise_reinforce_and_gp_estimators(capsys):
         )
 
 
+@pytest.mark.slow
 @requires_x64
 def test_unbiased_guided_variance_reinforce():
     """REINFORCE with the eq. 17 score (incl. the 1/2 and the path through sigma^2_GP) is

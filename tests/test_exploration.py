@@ -167,6 +167,7 @@ def _linear_problem(noise, params, eps):
     return rewards.sum(), xs, rewards
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,kw", [("ou", dict(correlation_time=0.05)),
                                      ("coloured", dict(exponent=1.5))])
 def test_reinforce_with_correlated_scores_matches_a_finite_difference(name, kw):
@@ -253,6 +254,7 @@ def test_parameter_scores_are_the_gradients_of_the_weights_log_density(dtype):
                                rtol=rtol, atol=rtol)
 
 
+@pytest.mark.slow
 def test_reinforce_with_parameter_noise_matches_a_finite_difference():
     """The linear system of `_linear_problem` with a = (k + sigma eps_j) . (1, x_t), eps_j drawn
     every 5 of 20 steps (u_max = 1): the REINFORCE estimate with each block's score times the
@@ -360,6 +362,7 @@ def _initial_state(method):
     return jax.jit(T.make_train(cfg).init)(jax.random.PRNGKey(0), cfg)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["reinforce", "guided_variance"])
 @pytest.mark.parametrize("exploration", ["white", "ou"])
 def test_rollout_scores_sit_at_decision_points_and_std_is_held(method, exploration):

@@ -31,6 +31,7 @@ def test_nlml_matches_scipy_density():
     np.testing.assert_allclose(got, expected, rtol=1e-10)
 
 
+@pytest.mark.slow
 def test_check_grads_and_closed_form_gradient():
     rng = np.random.default_rng(1)
     xs, ys = jnp.array(rng.normal(size=(25, 2))), jnp.array(rng.normal(size=25))
@@ -43,6 +44,7 @@ def test_check_grads_and_closed_form_gradient():
         np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-10)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("optimizer,steps", [("lbfgs", 30), ("adam", 250)])
 def test_fit_recovers_lengthscales_vmapped_over_seeds(optimizer, steps):
     """Data drawn from a known GP (N = 300, D = 2): lengthscales recovered within 25%."""
@@ -86,6 +88,7 @@ def test_fit_guards_keep_it_finite(optimizer):
         assert np.all(np.asarray(v) <= np.asarray(hi) + 1e-9)
 
 
+@pytest.mark.slow
 def test_lbfgs_reaches_a_likelihood_at_least_as_high_as_adam():
     """15 L-BFGS iterations vs 100 Adam steps (the fit used before) on pendulum-like data with a
     small noise (sigma_f^2/sigma_n^2 ~ 400): the L-BFGS NLML is not higher."""
@@ -117,6 +120,7 @@ def _longdouble_inverse(A):
     return X.T @ X
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("n", [1, 7, 128, 129, 260, 301])
 def test_cholesky_inverse_against_an_80_bit_inverse(n):
     """The blocked potri (`cholesky_inverse`) on sizes below, at and above the block size (odd

@@ -11,6 +11,8 @@ import os
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.training  # a reproduce run per preset
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 _spec = importlib.util.spec_from_file_location("make_method_records",
                                                os.path.join(HERE, "data", "make_method_records.py"))

@@ -198,6 +198,7 @@ def test_a_method_with_its_own_settings_is_configured_by_their_flat_names(hill_c
     assert "x" not in methods.names()
 
 
+@pytest.mark.training
 def test_a_method_registered_in_a_test_runs_through_every_driver(tmp_path, hill_climb, capsys):
     """The command line (with --set of the method's own settings; a chunk, then resumed from its
     checkpoint), its results file and summaries, and a sweep of its traced setting take the
@@ -284,6 +285,7 @@ def test_reproduce_builds_the_shared_program_of_the_methods_that_accept_the_conf
         C.preset("tiny", method="guided_direction", exploration="ou")
 
 
+@pytest.mark.training
 def test_each_method_runs_with_the_prior_fitted_from_its_own_settings(tmp_path, monkeypatch):
     """A method whose tuned settings change the fit's data (here its discount) runs with the
     prior fitted on its own data, and the methods whose fit inputs agree share one fit. The

@@ -311,6 +311,7 @@ def test_the_stated_reward_of_a_task_that_states_none_is_refused_in_one_line():
     assert not MB.learns_reward(tasks.make_task("pendulum"), C.make_config(method="gp_model"))
 
 
+@pytest.mark.slow
 def test_a_learned_reward_predicts_the_stated_one_on_transitions_it_has_not_seen(dtype="float64"):
     """Pendulum-v1, its reward learnt as the model's last output from 400 of 600 random-action
     transitions: on the 200 others, the learnt reward's mean is the task's stated reward (itself
@@ -368,6 +369,7 @@ def _pendulum_model():
     return cfg, prog, data, model, mean
 
 
+@pytest.mark.slow
 @pytest.mark.xdist_group("model_pendulum")  # one worker builds the model both cases read
 @pytest.mark.parametrize("exploration", ["sample", "optimistic"])
 def test_the_simulated_return_gradient_matches_finite_differences(exploration):
@@ -430,6 +432,7 @@ def _linear_task() -> tasks.Task:
         reward_fn=lambda x, u, nxt: -(q * x[0] ** 2 + r * u ** 2))
 
 
+@pytest.mark.training
 @pytest.mark.parametrize("reward", ["stated", "learned"])
 def test_the_controller_optimised_through_a_learned_model_approaches_the_lqr_gain(reward):
     """On x' = x + 0.5 u with cost x^2 + 0.1 u^2: the model learned from two episodes of random
@@ -500,6 +503,7 @@ def test_a_held_step_counts_its_reward_k_times_and_an_end_s_bonus_once(reward):
         tasks.make_task.cache_clear()
 
 
+@pytest.mark.slow
 def test_its_evaluation_episodes_hold_the_action_as_its_learning_episodes_do():
     """gp_model's controller is optimised for actions held `hold_time`: its evaluation on the
     paper's pendulum (start fixed, reward noise off) holds them 20 steps, as a loop of the
@@ -621,6 +625,7 @@ def test_the_presets_hold_the_model_study_s_tuned_settings():
         assert cfg.to_json_dict() == C.preset(task, method="gp_model").to_json_dict()
 
 
+@pytest.mark.training
 def test_a_run_resumed_from_its_checkpoint_equals_one_uninterrupted(tmp_path):
     """`reproduce` of gp_model (tiny preset, held actions, chunks of 2 of its 6 updates): stopped
     after one chunk and resumed from the checkpoint (the model's buffer and kernels in it), the

@@ -23,6 +23,7 @@ def _constant_controller(prog, bias):
     return zeros._replace(bias=jnp.asarray(bias, jnp.float64))
 
 
+@pytest.mark.slow
 @pytest.mark.xdist_group("model_pendulum")
 def test_an_objective_chosen_by_name_is_what_the_roll_out_sums_and_the_optimiser_climbs(monkeypatch):
     """An action cost -a^2 registered as an objective: the simulated return of a constant action
@@ -49,6 +50,7 @@ def test_an_objective_chosen_by_name_is_what_the_roll_out_sums_and_the_optimiser
     assert abs(float(new.bias)) < 0.4
 
 
+@pytest.mark.slow
 @pytest.mark.xdist_group("model_pendulum")
 def test_a_use_of_the_uncertainty_chosen_by_name_gives_the_particles_their_functions(monkeypatch):
     """A use that gives every particle the zero function: each step then moves the observation by
@@ -77,6 +79,7 @@ def test_a_use_of_the_uncertainty_chosen_by_name_gives_the_particles_their_funct
     assert ret == pytest.approx(np.mean(expected), rel=1e-9)
 
 
+@pytest.mark.slow
 @pytest.mark.xdist_group("model_pendulum")
 def test_an_optimiser_chosen_by_name_takes_its_own_step(monkeypatch):
     """Plain gradient ascent registered as an optimiser: one step is params + lr * the gradient
@@ -97,6 +100,7 @@ def test_an_optimiser_chosen_by_name_takes_its_own_step(monkeypatch):
         np.testing.assert_allclose(got, p + 0.1 * g, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.training
 def test_an_actor_declared_as_a_method_acts_after_every_update():
     """gp_model with another actor, declared under its own name by `make_method`: it shares
     gp_model's settings (by their flat names) and acts with what its actor leaves; here the

@@ -61,6 +61,7 @@ def test_notebooks_exist():
     ]
 
 
+@pytest.mark.notebooks
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
 def test_notebook_executes(path, kernel_spec_manager):
     nb = jupytext.read(path, fmt="py:percent")

@@ -149,6 +149,7 @@ def _policy(key, s):
     return 3.0 * jnp.sin(s[0]) - 0.5 * s[1] + jax.random.normal(key)
 
 
+@pytest.mark.slow
 def test_jit_vmap_and_plain_agree_and_are_reproducible():
     p = P.make_params(reward_noise_std=0.2)
     key = jax.random.key(42)

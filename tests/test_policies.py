@@ -288,6 +288,7 @@ def test_factor_one_half_in_eq17():
     assert float(relative_error(printed, auto)) > 1e-3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("controller_name", CONTROLLER_NAMES)
 @pytest.mark.parametrize("policy_name", policies.POLICY_NAMES)
 def test_check_grads_log_prob(policy_name, controller_name):
@@ -309,6 +310,7 @@ def test_check_grads_log_prob(policy_name, controller_name):
 # ------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_gibbs_selection_frequencies_chi_square():
     """20 000 selections vs softmax(beta E) at fixed candidates; chi-square at alpha = 0.001."""
     controller = _CONTROLLERS["linear"]
@@ -508,6 +510,7 @@ def act_vs_parts_fn(policy_name, controller_name):
     return fn
 
 
+@pytest.mark.slow
 @_every_policy_and_case(max_examples=15)
 def test_act_equals_sample_score_and_std(policy_name, controller_name, seed, **case):
     """`act` (what the training loop calls at every step, with the GP and the controller evaluated
@@ -529,6 +532,7 @@ def test_act_equals_sample_score_and_std(policy_name, controller_name, seed, **c
 # ------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("policy_name", policies.POLICY_NAMES)
 def test_jit_vmap_and_scan(policy_name):
     controller = _CONTROLLERS["rbf"]
@@ -577,6 +581,7 @@ def test_jit_vmap_and_scan(policy_name):
     assert bool(jnp.all(jnp.isfinite(ravel_pytree(total)[0])))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("policy_name", policies.POLICY_NAMES)
 def test_float32_runs_without_nan(policy_name):
     controller = _CONTROLLERS["linear"]

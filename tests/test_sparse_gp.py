@@ -240,6 +240,7 @@ def _gram_condition(state, hyper):
     return np.linalg.cond(K), m.sum()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
 @pytest.mark.parametrize("age_penalty", [0.0, 10.0])
 def test_long_adversarial_stream_matches_80bit_replay(dtype, age_penalty):
@@ -298,6 +299,7 @@ def _dtc_posterior(bv, xs, ys, tests, ls, sf2, sn2, m0):
     return mean, var
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
 @pytest.mark.parametrize("sf2_over_sn2", [3e3, 1e6])
 def test_repeated_inputs_match_the_projected_process_posterior(dtype, sf2_over_sn2):
@@ -340,6 +342,7 @@ def test_repeated_inputs_match_the_projected_process_posterior(dtype, sf2_over_s
     assert mean.min() >= ys.min() - 3 * np.sqrt(sf2) and mean.max() <= ys.max() + 3 * np.sqrt(sf2)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
 def test_one_input_repeated_ten_thousand_times(dtype):
     """The extreme duplicate: one x, 10^4 noisy observations. The posterior is that of a scalar
@@ -377,6 +380,7 @@ def _update_batch_traced(state, xs, ys, ts, hyper, age_penalty):
                                   age_penalty=age_penalty, age_scale=0.5)
 
 
+@pytest.mark.slow
 @settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     seed=st.integers(0, 2**31 - 1),
@@ -496,6 +500,7 @@ def test_age_function_guards():
 # --- transforms, compilation, numerics ------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_jit_vmap_and_plain_agree_and_no_recompile():
     capacity, n = 10, 30
     streams = [_data(n, s) for s in range(3)]
@@ -531,6 +536,7 @@ def test_jit_vmap_and_plain_agree_and_no_recompile():
     assert jitted._cache_size() == 1
 
 
+@pytest.mark.slow
 def test_sweep_over_age_penalty_is_one_vmap():
     xs, ys = _data(60, 6)
     lams = jnp.array([0.0, 1.0, 100.0])
@@ -552,6 +558,7 @@ def test_sweep_over_age_penalty_is_one_vmap():
     np.testing.assert_allclose(out.alpha[2], single.alpha, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_non_finite_pairs_are_skipped():
     xs, ys = _data(12, 7)  # as many pairs as the batch below: one compiled program for both
     # compiled (op by op, every operation of the loops would be compiled on its own)
@@ -621,6 +628,7 @@ def _adversarial_stream(n, seed, dtype):
 
 
 # each case compiles four loops: the two dtypes and the two age functions, each once
+@pytest.mark.slow
 @pytest.mark.parametrize("age_fn, capacity, dtype", [("exp", 12, jnp.float64),
                                                      ("logit", 30, jnp.float32)])
 def test_segmented_loop_equals_scanned_updates_bit_for_bit(age_fn, capacity, dtype):

@@ -57,6 +57,7 @@ def test_x_scale():
 # The two tests below sweep the tiny preset's gp_pg over 3 values x 2 seeds: one program of the
 # same shapes, compiled by the first and loaded from the test run's compilation cache by the
 # second (in one worker, one after the other).
+@pytest.mark.training
 @pytest.mark.xdist_group("tiny_sweep")
 def test_sweep_is_one_program_and_writes_its_files(tmp_path, monkeypatch):
     traces = {"init": 0, "run_chunk": 0}
@@ -108,6 +109,7 @@ def test_sweep_is_one_program_and_writes_its_files(tmp_path, monkeypatch):
         assert f["mean_reward"].shape == (3, 2, 4)
 
 
+@pytest.mark.cli
 def test_cli_sweep_in_a_subprocess(tmp_path):
     out = tmp_path / "sweep"
     cmd = [sys.executable, "-m", "gpguided_jax.cli", "sweep", "--param", "lr", "--values", "1e-4",
@@ -135,6 +137,7 @@ def test_cli_sweep_help(capsys):
     assert "--param" in capsys.readouterr().out
 
 
+@pytest.mark.training
 @pytest.mark.xdist_group("tiny_sweep")  # see test_sweep_is_one_program_and_writes_its_files
 def test_sweep_runs_equal_the_same_runs_alone(tmp_path):
     """On a CPU the sweep takes its runs one after another (`sharding.per_seed_program`, map):

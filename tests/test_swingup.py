@@ -43,6 +43,7 @@ def test_energy_pumping_controller_swings_up_from_95_percent_of_starts(cfg):
     assert rate >= 0.95, rate
 
 
+@pytest.mark.slow
 def test_fitted_rbf_controller_swings_up_as_often(cfg):
     controller = train_lib.make_controller(cfg)
     theta, mse = swingup.fit_controller(

@@ -85,6 +85,7 @@ print("same")
 """
 
 
+@pytest.mark.slow
 def test_brax_adapter_steps_as_brax_does():
     """brax's inverted pendulum through the adapter and through brax's own Env.step (actions in
     brax's range [-1, 1]; beyond it the adapter clips): the same observations, rewards and ends.
@@ -249,6 +250,7 @@ def test_unsupported_environments_are_refused_in_one_line(env, message, capsys):
 # brax's physics compiles slowly on a CPU: its run trains REINFORCE alone, which needs no
 # hyperparameter fit (one program fewer with brax's step in it); the GP methods on an environment
 # that ends early are the car's run here and test_steps_after_an_early_end_are_masked
+@pytest.mark.cli
 @pytest.mark.parametrize("env,methods", [("gymnax:MountainCarContinuous-v0", ["reinforce", "gp_pg"]),
                                          ("brax:inverted_pendulum", ["reinforce"])])
 def test_a_tiny_run_on_a_standard_environment_from_the_command_line(env, methods, tmp_path):

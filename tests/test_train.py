@@ -80,6 +80,7 @@ def tiny_runs():
     return {m: (fn, args, fn(*args)) for m, (fn, args) in runs.items()}
 
 
+@pytest.mark.training
 @pytest.mark.xdist_group("tiny_runs")
 @pytest.mark.parametrize("method", C.PAPER_METHODS)
 def test_every_method_runs_with_finite_records(tiny_runs, method):
@@ -101,6 +102,7 @@ def test_every_method_runs_with_finite_records(tiny_runs, method):
         assert np.all(np.asarray(rec.num_basis_vectors) <= cfg.gp_capacity)
 
 
+@pytest.mark.training
 @pytest.mark.xdist_group("tiny_runs")
 def test_the_paper_methods_records_equal_their_reference_file(tiny_runs):
     """The tiny preset's records of the paper's four methods, run as `gpguided reproduce` runs
@@ -117,6 +119,7 @@ def test_the_paper_methods_records_equal_their_reference_file(tiny_runs):
             np.testing.assert_allclose(got, ref[name], rtol=1e-9, atol=1e-12, err_msg=name)
 
 
+@pytest.mark.training
 @pytest.mark.xdist_group("tiny_runs")
 @pytest.mark.parametrize("method", ["reinforce", "guided_variance", "guided_direction"])
 def test_same_key_bitwise_identical_no_recompile_and_seeds_differ(tiny_runs, method):
@@ -132,6 +135,7 @@ def test_same_key_bitwise_identical_no_recompile_and_seeds_differ(tiny_runs, met
     assert not np.array_equal(r[0], r[1])
 
 
+@pytest.mark.training
 @pytest.mark.xdist_group("tiny_runs")
 def test_per_seed_program_map_equals_one_seed_alone(tiny_runs):
     """The CPU default runs each seed's own program: a batch gives each seed exactly what it gets
@@ -147,6 +151,7 @@ def test_per_seed_program_map_equals_one_seed_alone(tiny_runs):
         sharding.resolve_seed_loop("pmap", mesh)
 
 
+@pytest.mark.training
 def test_sweep_over_traced_field_is_one_program():
     cfg = C.preset("tiny", method="gp_pg")
     train = T.make_train(cfg)
@@ -219,6 +224,7 @@ def improve_program():
                             in_axes=(0, 0, None, None)))
 
 
+@pytest.mark.training
 @pytest.mark.xdist_group("improve")  # one worker fits the shared priors and compiles the program
 @pytest.mark.parametrize("method", ["gp_pg", "guided_variance", "guided_direction"])
 def test_gp_methods_improve_on_a_small_problem(method, improve_priors, improve_program):
@@ -241,6 +247,7 @@ def test_gp_methods_improve_on_a_small_problem(method, improve_priors, improve_p
     assert np.all(np.asarray(rec.gp_guard) == 0) and np.all(np.asarray(rec.nonfinite_grad) == 0)
 
 
+@pytest.mark.training
 def test_resume_equals_uninterrupted(tmp_path):
     kw = dict(REPRODUCE_KW, methods=["gp_pg"])
     full = R.reproduce(out_dir=str(tmp_path / "full"), progress=lambda m: None, **kw)
@@ -258,6 +265,7 @@ def test_resume_equals_uninterrupted(tmp_path):
     assert (tmp_path / "full" / "fig5_reward.png").exists()
 
 
+@pytest.mark.distributed
 @pytest.mark.xdist_group("two_devices")  # shares two_device_run with tests/test_distributed.py
 def test_two_host_devices_vmapped_agree_with_each_seed_alone(tmp_path, two_device_run):
     """Runs the CLI in a subprocess with 2 forced host CPU devices.
@@ -296,6 +304,7 @@ def test_devices_for_seeds_keeps_the_load_and_minimises_padding():
         sharding.devices_for_seeds(0, 2)
 
 
+@pytest.mark.training
 def test_learnable_sigma_is_clipped_to_its_bounds():
     cfg = C.preset("tiny", method="reinforce", learning_rate=1.0, min_std=0.7, max_std=0.8)
     state, rec = jax.jit(T.make_train(cfg))(jax.random.PRNGKey(5))
@@ -312,6 +321,7 @@ def test_learnable_sigma_is_clipped_to_its_bounds():
         C.preset("tiny", min_std=2.0, max_std=1.0)
 
 
+@pytest.mark.training
 def test_float32_run_keeps_every_array_in_float32():
     """dtype='float32' with JAX's x64 mode ON: nothing may be promoted to float64 on the way.
     guided_direction: the GP update, its mean in the gradient, and the Gibbs policy (the other
@@ -325,6 +335,7 @@ def test_float32_run_keeps_every_array_in_float32():
         assert all(np.all(np.isfinite(np.asarray(x))) for x in floats)
 
 
+@pytest.mark.training
 def test_same_seed_sees_the_same_noise_in_both_dtypes():
     """Random draws are dtype-independent: REINFORCE's float32 and float64 curves agree to float32
     rounding (a float32-vs-float64 comparison then measures numerics, not different noise)."""
@@ -353,6 +364,7 @@ def test_gradient_clipping_bounds_the_step():
     np.testing.assert_array_equal(theta_nan.controller.weights, state.theta.controller.weights)
 
 
+@pytest.mark.training
 def test_gp_guard_rejects_a_diverged_gp_and_counts_it():
     cfg = C.preset("tiny", method="gp_pg")
     prog = T.make_program(cfg)
@@ -373,6 +385,7 @@ def test_gp_guard_rejects_a_diverged_gp_and_counts_it():
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+@pytest.mark.training
 def test_gp_stride_takes_every_kth_point_into_the_gp():
     """With gp_stride = k the GP's update equals `take_in_episode` on points 0, k, 2k, ... of each
     episode; gp_stride = 1 is the default and unchanged."""
@@ -447,6 +460,7 @@ def _max_rel_diff(a, b):
                for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)))
 
 
+@pytest.mark.training
 def test_gp_methods_program_runs_each_method_as_its_own_program():
     """One program for the three GP methods: with the method's index and config as arguments it
     gives what that method's own program gives (to rounding: XLA compiles the two differently),
@@ -503,6 +517,7 @@ def test_gp_methods_program_refuses_reinforce_and_other_static_fields():
         shared(None, 2, T.gp_methods_key(cfg), 1)
 
 
+@pytest.mark.training
 def test_a_method_alone_equals_it_among_the_others(tmp_path):
     """`reproduce` runs its GP methods through one shared program, whichever of them it is asked
     for, so a method's records are the same bit for bit alone and with the others, and compiled
