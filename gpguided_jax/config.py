@@ -232,6 +232,17 @@ class TrainConfig:
         """Episodes of the initial policy that give `hyperfit_samples` pairs, one per step."""
         return -(-self.hyperfit_samples // self.episode_length)
 
+    def value(self, name: str):
+        """A field, or one of the method's own settings by its flat name (`settings.declare`):
+        what presets, tuning records and `--set` call `name`. `KeyError` for neither."""
+        if name in _FIELD_NAMES:
+            return getattr(self, name)
+        if self.settings is not None:
+            fields = settings_lib.flat_names(type(self.settings))
+            if name in fields:
+                return getattr(self.settings, fields[name])
+        raise KeyError(f"{name!r} is neither a TrainConfig field nor a setting of {self.method}")
+
     def static_dict(self) -> dict:
         """The static fields, the method's static settings among them (by their flat names)."""
         return {**{f: getattr(self, f) for f in STATIC_FIELDS},
@@ -338,7 +349,8 @@ def _own_settings(method: str, flat: dict) -> dict:
     owners = methods.setting_owners()
     unknown = set(flat) - set(owners)
     if unknown:
-        raise TypeError(f"unknown TrainConfig field(s) or method setting(s): {sorted(unknown)}")
+        raise TypeError(f"unknown TrainConfig field(s): {sorted(unknown)} (neither a field nor a "
+                        f"registered method's setting)")
     return {k: v for k, v in flat.items() if method in owners[k]}
 
 _POSITIVE = ("learning_rate", "max_grad_norm", "success_tolerance", "min_std", "max_std",

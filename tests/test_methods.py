@@ -183,6 +183,9 @@ def test_a_method_with_its_own_settings_is_configured_by_their_flat_names(hill_c
     view = cfg.to_json_dict()
     assert view["climb_patience"] == 3 and view["climb_step_size"] == 0.2
     assert "critic_steps" not in view and cfg.static_dict()["climb_patience"] == 3
+    assert float(cfg.value("climb_step_size")) == 0.2 and cfg.value("num_updates") == 4
+    with pytest.raises(KeyError, match="critic_steps"):
+        cfg.value("critic_steps")
     assert cfg.replace(climb_patience=5).settings.patience == 5
     assert cfg.replace(method="reinforce").settings is None
     leaves = jax.tree_util.tree_leaves(cfg.settings)

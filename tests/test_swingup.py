@@ -96,7 +96,7 @@ def test_swingup_preset_uses_the_tuned_settings():
         for field, value in study.settings_of(chosen, chosen["scheme"]).items():
             if field == "discount_horizon":
                 field, value = "discount", math.exp(-0.005 / value)
-            got = getattr(cfg, field)
+            got = cfg.value(field)
             if isinstance(value, (str, bool)):
                 assert got == value, (method, field)
             else:

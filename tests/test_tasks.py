@@ -302,8 +302,8 @@ def test_the_standard_presets_hold_the_tuned_settings(task, dt):
         cfg = config.preset(task, method=method)
         for field, value in preset.items():  # the exploration's fields too
             if isinstance(value, str):
-                assert getattr(cfg, field) == value, (method, field)
+                assert cfg.value(field) == value, (method, field)
             elif field != "discount_horizon":
-                assert float(getattr(cfg, field)) == pytest.approx(value), (method, field)
+                assert float(cfg.value(field)) == pytest.approx(value), (method, field)
         horizon = chosen.get("discount_horizon", config.PRESETS[task]["discount_horizon"])
         assert float(cfg.discount) == pytest.approx(math.exp(-dt / horizon))
