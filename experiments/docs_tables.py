@@ -278,10 +278,10 @@ MODEL_PART_LABELS = {
 
 
 def _duration(seconds: float) -> str:
-    """A duration in s or ms, to three significant figures or more."""
-    if seconds >= 1.0:
-        return f"{seconds:.2f} s"
-    return f"{seconds * 1e3:.3g} ms" if seconds >= 1e-3 else f"{seconds * 1e3:.2f} ms"
+    """A duration in s (from 1 s) or ms, to three significant figures (whole units from 100)."""
+    value, unit = (seconds, "s") if seconds >= 1.0 else (seconds * 1e3, "ms")
+    digits = max(0, 2 - math.floor(math.log10(value))) if value > 0 else 2
+    return f"{value:.{digits}f} {unit}"
 
 
 def bench_model_table() -> str:
@@ -296,7 +296,8 @@ def bench_model_table() -> str:
                                                for d in dtypes) + " |",
              "|---|---|" + "---|---|" * len(dtypes)]
     def share(r, x):  # per seed, and its share of the whole update
-        return f"{_duration(x / r['seeds'])} ({100 * x / r['update']['run_s']['median']:.0f}%)"
+        pct = 100 * x / r["update"]["run_s"]["median"]
+        return f"{_duration(x / r['seeds'])} ({'<1' if pct < 0.5 else f'{pct:.0f}'}%)"
 
     cells = {part: (lambda r, p=part: f"{share(r, r['parts'][p]['run_s']['median'])} | "
                                       f"{r['parts'][p]['compile_s']:.1f} s")
@@ -322,7 +323,7 @@ def bench_model_table() -> str:
         r = next(iter(by_dtype.values()))
         c = r["settings"]
         lines.append(f"| {task} | {r['buffer_transitions']:,.0f} ({c['capacity']:,}) | "
-                     f"{c['episodes']} × {c['episode_length']}, {c['eval_episodes']} | "
+                     f"{c['episodes']} × {c['episode_length']:,}, {c['eval_episodes']} | "
                      f"{c['inducing']} × {c['outputs']} | {c['fit_steps']} on {c['fit_subset']} | "
                      f"{c['particles']} × {c['plan_steps']} | {c['steps']} |")
     sc = m["seed_scaling"]
@@ -333,8 +334,11 @@ def bench_model_table() -> str:
         lines.append(f"| {r['seeds']} | {r['devices']} | {r['compile_s']:.1f} s | "
                      f"{_duration(t['median'])} [{_duration(t['min'])}, {_duration(t['max'])}] | "
                      f"{_duration(r['per_seed_s'])} |")
+    load = ", ".join(f"{x:.1f}" for x in m["load_average_after"])
     lines += ["", _caption(f"The whole update on {sc['task']}, {sc['dtype']}, medians of "
-                           f"{sc['rows'][0]['run_s']['runs']} runs.", _source("bench.json"))]
+                           f"{sc['rows'][0]['run_s']['runs']} runs. The machine's load average "
+                           f"after the section (1, 5 and 15 minutes): {load}.",
+                           _source("bench.json"))]
     return "\n".join(lines)
 
 
