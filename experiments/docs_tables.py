@@ -264,6 +264,84 @@ def bench_table() -> str:
     return "\n".join(lines)
 
 
+# gp_model's parts in `gpguided bench`'s ``model`` section (`bench.MODEL_PARTS`), as the table
+# names them
+MODEL_PART_LABELS = {
+    "episodes": "the update's episodes",
+    "take_in": "take-in (transitions into the buffer)",
+    "condition_before": "conditioning on the old data, and the error record",
+    "refit": "refit of the kernels",
+    "condition_after": "conditioning after the take-in",
+    "optimise": "the controller's optimisation (plan and steps)",
+    "evaluation": "the evaluation episodes",
+}
+
+
+def _duration(seconds: float) -> str:
+    """A duration in s (from 1 s) or ms, to three significant figures (whole units from 100)."""
+    value, unit = (seconds, "s") if seconds >= 1.0 else (seconds * 1e3, "ms")
+    digits = max(0, 2 - math.floor(math.log10(value))) if value > 0 else 2
+    return f"{value:.{digits}f} {unit}"
+
+
+def bench_model_table() -> str:
+    """`gpguided bench`'s ``model`` section (docs/results/bench.json): each part of gp_model's
+    update per seed, compile apart, per task and dtype; the tasks' settings; the whole update's
+    time over the seed counts."""
+    with open(os.path.join(RESULTS, "bench.json")) as f:
+        m = json.load(f)["model"]
+    tasks = m["tasks"]
+    dtypes = list(next(iter(tasks.values())))
+    lines = ["| task | part | " + " | ".join(f"{d}: run per seed (share) | {d}: compile"
+                                               for d in dtypes) + " |",
+             "|---|---|" + "---|---|" * len(dtypes)]
+    def share(r, x):  # per seed, and its share of the whole update
+        pct = 100 * x / r["update"]["run_s"]["median"]
+        return f"{_duration(x / r['seeds'])} ({'<1' if pct < 0.5 else f'{pct:.0f}'}%)"
+
+    cells = {part: (lambda r, p=part: f"{share(r, r['parts'][p]['run_s']['median'])} | "
+                                      f"{r['parts'][p]['compile_s']:.1f} s")
+             for part in MODEL_PART_LABELS}
+    cells["sum of the parts"] = lambda r: (f"{share(r, r['parts_sum_s'])} | "
+                                           f"{r['parts_compile_sum_s']:.1f} s")
+    cells["**the whole update**"] = lambda r: (f"**{_duration(r['update']['per_seed_s'])}** | "
+                                               f"{r['update']['compile_s']:.1f} s")
+    for task, by_dtype in tasks.items():
+        for key, cell in cells.items():
+            lines.append(f"| {task} | {MODEL_PART_LABELS.get(key, key)} | "
+                         + " | ".join(cell(by_dtype[d]) for d in dtypes) + " |")
+    first = next(iter(next(iter(tasks.values())).values()))
+    lines += ["", _caption(
+        f"Medians of {m['repeats']} runs of each program on {first['seeds']} seeds "
+        f"({first['devices']} devices), from the state after {first['warm_updates']} "
+        f"update{'' if first['warm_updates'] == 1 else 's'}, "
+        f"divided by the seeds; {m['cpu_count']} CPU cores, jax {m['jax']}.")]
+    lines += ["", "| task | transitions in the buffer (of) | episodes × steps, evaluation "
+              "episodes | inducing inputs × outputs | refit: Adam steps on points | particles × "
+              "simulated steps | optimiser steps |", "|---|---|---|---|---|---|---|"]
+    for task, by_dtype in tasks.items():
+        r = next(iter(by_dtype.values()))
+        c = r["settings"]
+        lines.append(f"| {task} | {r['buffer_transitions']:,.0f} ({c['capacity']:,}) | "
+                     f"{c['episodes']} × {c['episode_length']:,}, {c['eval_episodes']} | "
+                     f"{c['inducing']} × {c['outputs']} | {c['fit_steps']} on {c['fit_subset']} | "
+                     f"{c['particles']} × {c['plan_steps']} | {c['steps']} |")
+    sc = m["seed_scaling"]
+    lines += ["", "| seeds | devices | compile | one update, all seeds: median [min, max] | "
+              "per seed |", "|---|---|---|---|---|"]
+    for r in sc["rows"]:
+        t = r["run_s"]
+        lines.append(f"| {r['seeds']} | {r['devices']} | {r['compile_s']:.1f} s | "
+                     f"{_duration(t['median'])} [{_duration(t['min'])}, {_duration(t['max'])}] | "
+                     f"{_duration(r['per_seed_s'])} |")
+    load = ", ".join(f"{x:.1f}" for x in m["load_average_after"])
+    lines += ["", _caption(f"The whole update on {sc['task']}, {sc['dtype']}, medians of "
+                           f"{sc['rows'][0]['run_s']['runs']} runs. The machine's load average "
+                           f"after the section (1, 5 and 15 minutes): {load}.",
+                           _source("bench.json"))]
+    return "\n".join(lines)
+
+
 SCALING_RUNS = ("scaling", "scaling_vmap")  # the CPU default; one vmapped batch on one device
 
 
@@ -743,6 +821,7 @@ TABLES = {
     "sweep_beta": sweep_beta_table,
     "gradient_check": gradient_check_table,
     "bench": bench_table,
+    "bench_model": bench_model_table,
     "scaling": scaling_table,
     "swingup": swingup_table,
     "swingup_warm": swingup_warm_table,

@@ -19,6 +19,13 @@ Sections (each a dict of figures; times in seconds, medians with min and max ove
 * ``paper_run``: wall time of the whole `gpguided reproduce --preset paper` command for the seeds
   (subprocess; hyperparameter fit, compilation, checkpoints, figures), with an empty persistent
   compilation cache ("cold") and again with the cache it filled ("warm").
+* ``model``: where gp_model's update spends its time, at its preset on each task
+  (`MODEL_TASKS`) in float64 and float32: each part of one update (`MODEL_PARTS`: the update's
+  episodes, the take-in, the conditioning on the old data with the error record, the refit, the
+  conditioning after the take-in, the controller's optimisation, the evaluation episodes) as its
+  own compiled program over the seeds, and the whole update, each timed apart from its
+  compilation on the state after a few real updates; and the whole update's time for 1 to 100
+  seeds (``seed_scaling``).
 
 `python -m gpguided_jax.cli bench --out docs/results/bench.json` writes the report that the
 benchmark table of docs/benchmarks.md is generated from (`experiments/docs_tables.py`).
@@ -39,8 +46,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpguided_jax import checkpoints, gp_reference, kernels, pendulum, reproduce, sharding, sparse_gp
+from gpguided_jax import (
+    checkpoints,
+    gp_reference,
+    kernels,
+    pendulum,
+    reproduce,
+    rollouts,
+    sharding,
+    sparse_gp,
+)
 from gpguided_jax import config as config_lib
+from gpguided_jax import model_based as mb
 from gpguided_jax import train as train_lib
 
 
@@ -386,37 +403,235 @@ def bench_paper_run(repeats: int, seeds: int, preset: str = "paper",
             "warm_s": _stats(warm)}
 
 
+# gp_model's tasks whose preset is cheap enough for every `gpguided bench`; the others
+# (`MODEL_PRESET_TASKS`) on request (`--model-tasks`)
+MODEL_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum")
+MODEL_PRESET_TASKS = tuple(mb.method.PRESETS)
+# the parts of one gp_model update, in the order it runs them (the evaluation episodes last)
+MODEL_PARTS = ("episodes", "take_in", "condition_before", "refit", "condition_after", "optimise",
+               "evaluation")
+MODEL_SCALING_SEEDS = (1, 10, 30, 100)
+# `--quick`: sizes at which every part compiles and runs in moments (the section's shape, not
+# its figures)
+QUICK_MODEL = dict(episode_length=50, num_updates=3, eval_episodes=2, model_inducing=16,
+                   model_particles=4, model_steps=30, model_fit_steps=20, model_fit_subset=32,
+                   model_horizon=0.5)
+
+
+def model_parts(cfg) -> dict:
+    """gp_model's update (`train.one_update` with `model_based.update`) of `cfg` in parts, each a
+    function of one seed: name -> (function, names of its arguments). Their arguments are the
+    update's state (``state``) and the parts' outputs before them (``episodes``, ``take_in``,
+    ``refit``, ``condition_after``), so that each part runs on what the update hands it; their
+    draws are the update's (`train.update_keys`, `model_based.model_keys`). ``update`` is the
+    whole update (`make_train(cfg).run_chunk` for one update)."""
+    train = train_lib.make_train(cfg)
+    prog, own = train.program, cfg.settings
+
+    def episodes(state):
+        _, keys, _ = train_lib.update_keys(prog, state)
+        return train_lib.roll_out_and_take_in(prog, cfg, state, keys)[1]
+
+    def take_in(state, eps):
+        tr = mb.transitions(prog, cfg, eps)
+        return mb.take_in(state.method_state, tr.inputs, tr.targets, tr.valid), tr
+
+    def condition_before(state, taken):
+        return mb.model_errors(prog, cfg, state.method_state, taken[1])
+
+    def refit(state, taken):
+        k_fit, _ = mb.model_keys(state)
+        return mb.refit(k_fit, taken[0], subset_size=own.fit_subset, num_steps=own.fit_steps,
+                        first=state.method_state.count == 0)
+
+    def condition_after(taken, log_kernels):
+        return mb.build(taken[0]._replace(log_kernels=log_kernels), own.inducing)
+
+    def optimise(state, taken, conditioned):
+        _, k_plan = mb.model_keys(state)
+        model, target_mean = conditioned
+        return mb.improve(prog, cfg, model, target_mean, k_plan, state.theta.controller,
+                          taken[0].hallucination)
+
+    def evaluation(state):
+        _, _, key_eval = train_lib.update_keys(prog, state)
+        return rollouts.evaluate(prog, key_eval, state.theta, cfg)
+
+    def update(state):
+        return train.run_chunk(state, cfg, 1)
+
+    return {"episodes": (episodes, ("state",)), "take_in": (take_in, ("state", "episodes")),
+            "condition_before": (condition_before, ("state", "take_in")),
+            "refit": (refit, ("state", "take_in")),
+            "condition_after": (condition_after, ("take_in", "refit")),
+            "optimise": (optimise, ("state", "take_in", "condition_after")),
+            "evaluation": (evaluation, ("state",)), "update": (update, ("state",))}
+
+
+def _compiled(fn, mesh, args):
+    """`fn` as a per-seed program over `mesh`, compiled for `args`: (compiled, seconds)."""
+    t0 = time.perf_counter()
+    compiled = sharding.per_seed_program(fn, mesh).lower(*args).compile()
+    return compiled, time.perf_counter() - t0
+
+
+def model_config(task: str, dtype: str, quick: bool = False, **overrides):
+    """gp_model's config at its preset on `task` in `dtype` (`QUICK_MODEL`'s sizes if `quick`)."""
+    return config_lib.preset(task, method="gp_model", dtype=dtype,
+                             **{**(QUICK_MODEL if quick else {}), **overrides})
+
+
+def bench_model_parts(repeats: int, cfg, seeds: int, warm_updates: int,
+                      progress=lambda m: None) -> dict:
+    """The parts of one update of `cfg` (`model_parts`) and the whole update, each compiled apart,
+    on the seeds' state after `warm_updates` real updates (the whole update's program run that
+    many times from the initial state), timed in turn (`timed_in_turn`) over `repeats` rounds.
+    Per part: compile seconds, the program's run seconds for all seeds (median, min, max) and
+    that median over the seeds (`per_seed_s`); the parts' sum and its ratio to the whole."""
+    mesh, keys = seed_mesh(seeds)
+    train = train_lib.make_train(cfg)
+    state = jax.block_until_ready(
+        sharding.per_seed_program(lambda k: train.init(k, cfg), mesh)(keys))
+    parts = model_parts(cfg)
+    compiled, compile_s = {}, {}
+    compiled["update"], compile_s["update"] = _compiled(parts["update"][0], mesh, (state,))
+    for _ in range(warm_updates):
+        state = jax.block_until_ready(compiled["update"](state)[0])
+    outputs, args = {"state": state}, {"update": (state,)}
+    for name in MODEL_PARTS:
+        progress(f"bench: gp_model on {cfg.env}, {cfg.dtype}: {name}")
+        fn, takes = parts[name]
+        args[name] = tuple(outputs[t] for t in takes)
+        compiled[name], compile_s[name] = _compiled(fn, mesh, args[name])
+        outputs[name] = jax.block_until_ready(compiled[name](*args[name]))
+    times = timed_in_turn({k: compiled[k] for k in (*MODEL_PARTS, "update")}, args, repeats)
+    n = len(keys)
+    out = {k: {"compile_s": compile_s[k], "run_s": _stats(v), "per_seed_s": _stats(v)["median"] / n}
+           for k, v in times.items()}
+    parts_sum = sum(out[k]["run_s"]["median"] for k in MODEL_PARTS)
+    own = cfg.settings
+    data = state.method_state
+    return {
+        "env": cfg.env, "dtype": cfg.dtype, "seeds": n, "devices": int(mesh.devices.size),
+        "warm_updates": warm_updates,
+        "settings": {"episode_length": cfg.episode_length, "episodes": cfg.episodes_per_update,
+                     "eval_episodes": cfg.eval_episodes, "hold": train.program.hold,
+                     "capacity": int(data.valid.shape[1]), "inducing": own.inducing,
+                     "fit_subset": own.fit_subset, "fit_steps": own.fit_steps,
+                     "particles": own.particles, "steps": own.steps,
+                     "plan_steps": mb.plan_steps(train.program, cfg),
+                     "exploration": own.exploration,
+                     "outputs": int(data.targets.shape[-1])},
+        "buffer_transitions": float(jnp.mean(jnp.sum(data.valid, axis=1))),
+        "parts": {k: out[k] for k in MODEL_PARTS}, "update": out["update"],
+        "parts_sum_s": parts_sum, "parts_over_update": parts_sum / out["update"]["run_s"]["median"],
+        "parts_compile_sum_s": sum(out[k]["compile_s"] for k in MODEL_PARTS),
+    }
+
+
+def bench_model_scaling(repeats: int, cfg, seed_counts, progress=lambda m: None) -> dict:
+    """The whole update of `cfg` (`make_train(cfg).run_chunk`, one update) for each number of
+    seeds in `seed_counts`, compiled apart, then run once from the initial state (the first run
+    warms the caches; its state is the one timed) and `repeats` times more."""
+    rows = []
+    train = train_lib.make_train(cfg)
+    for seeds in seed_counts:
+        progress(f"bench: gp_model on {cfg.env}, {cfg.dtype}: the whole update, {seeds} seeds")
+        mesh, keys = seed_mesh(seeds)
+        state = jax.block_until_ready(
+            sharding.per_seed_program(lambda k: train.init(k, cfg), mesh)(keys))
+        run, compile_s = _compiled(lambda s: train.run_chunk(s, cfg, 1), mesh, (state,))
+        state = jax.block_until_ready(run(state)[0])
+        t = _stats(_timed(lambda r=run, s=state: r(s), repeats))
+        rows.append({"seeds": len(keys), "devices": int(mesh.devices.size), "compile_s": compile_s,
+                     "run_s": t, "per_seed_s": t["median"] / len(keys)})
+    return {"env": cfg.env, "dtype": cfg.dtype, "rows": rows}
+
+
+def bench_model(repeats: int, *, tasks=MODEL_TASKS, dtypes=("float64", "float32"), seeds: int = 2,
+                warm_updates: int = 3, scaling_seeds=MODEL_SCALING_SEEDS,
+                scaling_task: str = "pendulum-v1", quick: bool = False,
+                progress=lambda m: None) -> dict:
+    """gp_model's update in parts on each of `tasks` in each of `dtypes` (`bench_model_parts`),
+    and its whole update over `scaling_seeds` seeds on `scaling_task` in the first of `dtypes`
+    (`bench_model_scaling`). float64 needs JAX's x64 mode (`gpguided bench` turns it on). The
+    section names its own repeats, date and load, so that it can be merged into a report whose
+    other sections were run at another time (`merge_reports`)."""
+    out: dict = {"repeats": repeats, "quick": quick, "date": time.strftime("%Y-%m-%d"),
+                 "jax": jax.__version__, "cpu_count": os.cpu_count(), "tasks": {}}
+    for task in tasks:
+        out["tasks"][task] = {
+            dtype: bench_model_parts(repeats, model_config(task, dtype, quick), seeds,
+                                     warm_updates, progress)
+            for dtype in dtypes}
+    out["seed_scaling"] = {"task": scaling_task, **bench_model_scaling(
+        repeats, model_config(scaling_task, dtypes[0], quick), scaling_seeds, progress)}
+    out["load_average_after"] = list(os.getloadavg())
+    return out
+
+
+SECTIONS = ("env", "gp", "train", "capacity", "paper_run", "model")
+
+
+def merge_reports(old: dict, new: dict, sections) -> dict:
+    """`old` (a report) with the `sections` of `new` in place of its own: a section run alone,
+    written into a report whose other sections (and their metadata) stay as they were."""
+    return {**old, **{k: new[k] for k in sections if k in new}}
+
+
 def run(*, repeats: int = 3, seeds: int = 10, numpy_updates: int = 50, quick: bool = False,
-        paper_run: bool = True, progress=lambda m: print(m, file=sys.stderr, flush=True)) -> dict:
-    """All sections; `quick` shrinks every size (for the tests)."""
+        paper_run: bool = True, sections=SECTIONS, model_tasks=None, model_seeds: int = 2,
+        model_scaling_seeds=None,
+        progress=lambda m: print(m, file=sys.stderr, flush=True)) -> dict:
+    """The `sections` (`SECTIONS`; ``paper_run`` only if `paper_run` too); `quick` shrinks every
+    size (for the tests). `model_tasks` and `model_scaling_seeds` default to `MODEL_TASKS` and
+    `MODEL_SCALING_SEEDS` (quick: Pendulum-v1 alone, 1 and 2 seeds)."""
+    unknown = set(sections) - set(SECTIONS)
+    if unknown:
+        raise ValueError(f"unknown bench sections {sorted(unknown)}; choose from {SECTIONS}")
     report = {
         "jax": jax.__version__, "numpy": np.__version__, "python": platform.python_version(),
         "devices": [str(d) for d in jax.devices()], "cpu_count": os.cpu_count(),
         "platform": platform.platform(), "dtype": str(jnp.result_type(float)),
         "date": time.strftime("%Y-%m-%d"), "repeats": repeats, "quick": quick,
     }
-    progress("bench: environment")
-    report["env"] = bench_env(repeats, steps=200 if quick else 2000,
-                              batches=(1, 10) if quick else (1, 10, 1000))
-    progress("bench: sparse GP")
-    report["gp"] = bench_gp(repeats, seeds=2 if quick else 10, n=300 if quick else 3000,
-                            capacity=20 if quick else 100, numpy_points=100 if quick else 1500)
-    progress("bench: training")
+    if "env" in sections:
+        progress("bench: environment")
+        report["env"] = bench_env(repeats, steps=200 if quick else 2000,
+                                  batches=(1, 10) if quick else (1, 10, 1000))
+    if "gp" in sections:
+        progress("bench: sparse GP")
+        report["gp"] = bench_gp(repeats, seeds=2 if quick else 10, n=300 if quick else 3000,
+                                capacity=20 if quick else 100, numpy_points=100 if quick else 1500)
     preset = "tiny" if quick else "paper"
-    # quick: each method's own program for REINFORCE and gp_pg alone (the ratio's two sides)
-    report["train"] = bench_train(repeats, 2 if quick else seeds, 1 if quick else numpy_updates,
-                                  preset, ("reinforce", "gp_pg") if quick else config_lib.PAPER_METHODS)
-    progress("bench: cost per update at each GP budget")
-    # quick: gp_critic at one small budget (the section's shape, not its figures)
-    report["capacity"] = bench_capacity(
-        repeats, 2 if quick else seeds, preset, (16,) if quick else (100, 400),
-        ("gp_critic",) if quick else ("gp_pg", "gp_critic"), 2 if quick else 10)
-    if paper_run:
+    if "train" in sections:
+        progress("bench: training")
+        # quick: each method's own program for REINFORCE and gp_pg alone (the ratio's two sides)
+        report["train"] = bench_train(repeats, 2 if quick else seeds, 1 if quick else numpy_updates,
+                                      preset, ("reinforce", "gp_pg") if quick
+                                      else config_lib.PAPER_METHODS)
+    if "capacity" in sections:
+        progress("bench: cost per update at each GP budget")
+        # quick: gp_critic at one small budget (the section's shape, not its figures)
+        report["capacity"] = bench_capacity(
+            repeats, 2 if quick else seeds, preset, (16,) if quick else (100, 400),
+            ("gp_critic",) if quick else ("gp_pg", "gp_critic"), 2 if quick else 10)
+    if paper_run and "paper_run" in sections:
         progress("bench: the whole reproduce command, cold and warm")
         # quick (the tests): the command timed once, with REINFORCE alone, whose compile is the
         # shortest (with the four methods the cold and warm runs would take most of the time)
         report["paper_run"] = bench_paper_run(
             1 if quick else repeats, 2 if quick else seeds, preset,
             ("reinforce",) if quick else config_lib.PAPER_METHODS)
+    if "model" in sections:
+        progress("bench: where gp_model's update spends its time")
+        if model_tasks is None:
+            model_tasks = ("pendulum-v1",) if quick else MODEL_TASKS
+        if model_scaling_seeds is None:
+            model_scaling_seeds = (1, 2) if quick else MODEL_SCALING_SEEDS
+        report["model"] = bench_model(repeats, tasks=tuple(model_tasks), seeds=model_seeds,
+                                      warm_updates=1 if quick else 3,
+                                      scaling_seeds=tuple(model_scaling_seeds), quick=quick,
+                                      progress=progress)
     report["load_average_after"] = list(os.getloadavg())
     return report

@@ -192,9 +192,18 @@ def _cmd_bench(args) -> int:
     runtime.set_precision("float64")
     from gpguided_jax import bench
 
-    bench.print_report(bench.run(repeats=args.repeats, seeds=args.seeds,
-                                 numpy_updates=args.numpy_updates, quick=args.quick,
-                                 paper_run=not args.no_paper_run), args.out)
+    if args.merge and not args.out:
+        raise SystemExit("gpguided bench: error: --merge writes into the report at --out; give --out")
+    report = bench.run(repeats=args.repeats, seeds=args.seeds, numpy_updates=args.numpy_updates,
+                       quick=args.quick, paper_run=not args.no_paper_run, sections=args.sections,
+                       model_tasks=args.model_tasks, model_seeds=args.model_seeds,
+                       model_scaling_seeds=args.model_scaling_seeds)
+    if args.merge and os.path.exists(args.out):
+        import json
+
+        with open(args.out) as f:
+            report = bench.merge_reports(json.load(f), report, args.sections)
+    bench.print_report(report, args.out)
     return 0
 
 
@@ -526,13 +535,16 @@ def _add_sweep(sub) -> None:
 
 
 def _add_bench(sub) -> None:
+    from gpguided_jax.bench import MODEL_PRESET_TASKS, MODEL_SCALING_SEEDS, MODEL_TASKS, SECTIONS
+
     be = sub.add_parser(
         "bench",
         formatter_class=_DefaultsHelp,
         help="run the benchmarks and print (and write) a JSON report",
         description="Environment, sparse GP (against the NumPy reference), hyperparameter fit, "
-        "training per method (against a per-seed NumPy loop), and the whole `gpguided reproduce` "
-        "command cold and warm; medians of --repeats runs. See gpguided_jax/bench.py.",
+        "training per method (against a per-seed NumPy loop), the whole `gpguided reproduce` "
+        "command cold and warm, and where gp_model's update spends its time; medians of "
+        "--repeats runs. See gpguided_jax/bench.py.",
     )
     be.add_argument("--repeats", type=positive_int, default=3, help="runs per figure (median)")
     be.add_argument("--seeds", type=positive_int, default=10, help="seeds of the paper run")
@@ -541,6 +553,19 @@ def _add_bench(sub) -> None:
                     "extrapolated to the whole run)")
     be.add_argument("--no-paper-run", action="store_true",
                     help="skip the whole-command timing (the slowest part)")
+    be.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS,
+                    metavar="SECTION", help="the sections to run, of: " + " ".join(SECTIONS))
+    be.add_argument("--merge", action="store_true",
+                    help="write the sections run into the report at --out, keeping its others")
+    be.add_argument("--model-tasks", nargs="+", default=None, choices=MODEL_PRESET_TASKS,
+                    metavar="TASK", help="the tasks of the gp_model section, of: "
+                    + " ".join(MODEL_PRESET_TASKS) + " (default: " + " ".join(MODEL_TASKS)
+                    + "; --quick: pendulum-v1)")
+    be.add_argument("--model-seeds", type=positive_int, default=2,
+                    help="seeds of the gp_model section's parts")
+    be.add_argument("--model-scaling-seeds", nargs="+", type=positive_int, default=None,
+                    metavar="N", help="seed counts of the gp_model section's whole update "
+                    "(default: " + " ".join(map(str, MODEL_SCALING_SEEDS)) + "; --quick: 1 2)")
     be.add_argument("--quick", action="store_true", help="tiny sizes (a smoke test)")
     be.add_argument("--out", default=None, help="also write the JSON here (default: stdout only)")
     be.set_defaults(func=_cmd_bench)

@@ -297,6 +297,14 @@ def roll_out_and_take_in_switched(progs, method_index, cfg: TrainConfig, state: 
     return gp, eps, returns, fired, error_ratio
 
 
+def update_keys(prog: Program, state: TrainState):
+    """An update's keys from the state's: (the next update's key, the keys of the update's
+    `episodes_per_update` episodes, the key of its evaluation episodes)."""
+    key, key_eps = jax.random.split(state.key)
+    key_eval = jax.random.fold_in(key_eps, 1)  # a side stream: the episodes' keys stay as they were
+    return key, jax.random.split(key_eps, prog.config.episodes_per_update), key_eval
+
+
 def one_update(prog: Program, cfg: TrainConfig, state: TrainState, roll_out=None):
     """key -> roll-outs and GP take-in (steps 1-2) -> the method's improvement step (3-4) ->
     records.
@@ -304,11 +312,9 @@ def one_update(prog: Program, cfg: TrainConfig, state: TrainState, roll_out=None
     `roll_out(cfg, state, keys)` replaces steps 1-2 (default: `roll_out_and_take_in` with
     `prog`'s policy; `make_methods_train` passes the switched one).
     """
-    static, method = prog.config, prog.method
-    key, key_eps = jax.random.split(state.key)
-    key_eval = jax.random.fold_in(key_eps, 1)  # a side stream: the episodes' keys stay as they were
+    method = prog.method
+    key, keys, key_eval = update_keys(prog, state)
     t = state.update_index
-    keys = jax.random.split(key_eps, static.episodes_per_update)
     if roll_out is None:
         gp, eps, returns, fired, error_ratio = roll_out_and_take_in(prog, cfg, state, keys)
     else:

@@ -49,10 +49,15 @@ from gpguided_jax.model_based.gp import (
 from gpguided_jax.model_based.method import (
     RECORDS,
     ModelSettings,
+    Transitions,
+    improve,
     init,
     learns_reward,
     make_method,
+    model_errors,
+    model_keys,
     plan_steps,
+    transitions,
     update,
 )
 from gpguided_jax.model_based.objectives import OBJECTIVES, Objective, stated_reward
@@ -68,9 +73,10 @@ OPTIMIZERS = tuple(OPTIMISERS)
 __all__ = [
     "EXPLORATIONS", "JITTER", "OBJECTIVES", "OPTIMISERS", "OPTIMIZERS", "RECORDS", "USES", "Actor",
     "actor", "build", "condition", "data", "decision_rewards", "decisions", "empty_data",
-    "farthest_points", "fast_variance", "gp", "init", "jitter_floor", "k_star", "learns_reward",
-    "make_method", "make_plan", "method", "ModelData", "ModelSettings", "next_of", "Objective",
-    "objectives", "optimise", "optimise_controller", "Optimiser", "Plan", "plan_steps", "predict",
-    "refit", "rollout", "sample_weights", "simulate", "SparseModel", "stated_reward", "take_in",
-    "targets_of", "Uncertainty", "uncertainty", "update", "variance_factors", "wrap",
+    "farthest_points", "fast_variance", "gp", "improve", "init", "jitter_floor", "k_star",
+    "learns_reward", "make_method", "make_plan", "method", "model_errors", "model_keys", "ModelData",
+    "ModelSettings", "next_of", "Objective", "objectives", "optimise", "optimise_controller",
+    "Optimiser", "Plan", "plan_steps", "predict", "refit", "rollout", "sample_weights", "simulate",
+    "SparseModel", "stated_reward", "take_in", "targets_of", "Transitions", "transitions",
+    "Uncertainty", "uncertainty", "update", "variance_factors", "wrap",
 ]

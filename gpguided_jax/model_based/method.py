@@ -25,7 +25,7 @@ under another name, sharing these settings.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -180,48 +180,101 @@ def make_update(actor: Actor = LEARNT_CONTROLLER):
     return update
 
 
-def _update(prog, cfg, state, batch, actor: Actor):
-    """Steps 3-4 of gp_model: take in, refit, condition, optimise (module notes)."""
-    task, own = prog.task, cfg.settings
-    objective = objectives.for_task(task, own.reward)
-    use = uncertainty.get(own.exploration)
-    data: ModelData = state.method_state
-    eps = batch.episodes
-    obs, nxt, acts = eps.states, eps.next_states, eps.actions
-    obs, nxt, acts, valid = decisions(prog.hold, obs, nxt, acts, eps.alive, eps.ends)
+class Transitions(NamedTuple):
+    """One update's transitions as the model takes them in (n decisions of its episodes).
+
+    Attributes:
+      inputs: (n, D) GP inputs (z, a).
+      targets: (n, E) changes of the normalised observation (and the decision's reward last, for
+        a learnt reward).
+      rewards: (n,) the decisions' rewards (their control steps' rewards summed).
+      valid: (n,) bool, the decisions taken wholly before their episode's end.
+      obs: (n, obs_dim) the observations the decisions were taken in.
+      actions: (n, act_dim) the decisions' actions.
+      next_obs: (n, obs_dim) the observations at the decisions' ends.
+    """
+
+    inputs: jax.Array
+    targets: jax.Array
+    rewards: jax.Array
+    valid: jax.Array
+    obs: jax.Array
+    actions: jax.Array
+    next_obs: jax.Array
+
+
+def transitions(prog, cfg, episodes) -> Transitions:
+    """The update's episodes as the model's transitions (`decisions`, `Task.features`,
+    `targets_of`), in the order `take_in` writes them."""
+    task = prog.task
+    objective = objectives.for_task(task, cfg.settings.reward)
+    obs, nxt, acts = episodes.states, episodes.next_states, episodes.actions
+    obs, nxt, acts, valid = decisions(prog.hold, obs, nxt, acts, episodes.alive, episodes.ends)
     d, e = task.feature_dim, task.obs_dim
     xs = jax.vmap(lambda s, a: rollouts.features(prog, s, a))(obs, acts).reshape(-1, d)
     ys = targets_of(task, obs, nxt).reshape(-1, e)
-    rewards = decision_rewards(prog.hold, eps.rewards).reshape(-1)
+    rewards = decision_rewards(prog.hold, episodes.rewards).reshape(-1)
     valid = valid.reshape(-1)
     if objective.learned:
         ys = jnp.concatenate([ys, rewards[:, None]], axis=1)
+    flat = lambda v: v.reshape((-1,) + v.shape[2:])  # noqa: E731
+    return Transitions(xs, ys, rewards, valid, flat(obs), flat(acts), flat(nxt))
+
+
+def model_keys(state):
+    """The keys of an update's refit and plan, (k_fit, k_plan), from the state's key (a side
+    stream of it: the next update's key is unchanged)."""
     key = jax.random.fold_in(state.key, 7)
     k_fit, k_plan, _ = jax.random.split(key, 3)
+    return k_fit, k_plan
 
-    # the model's error on this update's transitions before it takes them in (data it has not
-    # seen; 1 on the first update, whose model is the prior: its prediction is 0), and the
-    # objective's reward's on them (the learnt one's before it takes them in, or the stated one's)
-    first = data.count == 0
+
+def model_errors(prog, cfg, data: ModelData, tr: Transitions):
+    """The records `model_error` and `model_reward_error`: the model conditioned on `data` (before
+    it takes `tr` in) predicting the transitions `tr`, data it has not seen (1 on the first update,
+    whose model is the prior: its prediction is 0), and the objective's reward's error on them
+    (the learnt one's before it takes them in, or the stated one's)."""
+    task, own = prog.task, cfg.settings
+    objective = objectives.for_task(task, own.reward)
+    e = task.obs_dim
     model_old, mean_old = build(data, own.inducing)
-    pred = jax.vmap(lambda x: predict(model_old, x)[0])(xs) + mean_old
-    model_error = _relative_error(pred[:, :e], ys[:, :e], valid)
-    flat = lambda v: v.reshape((-1,) + v.shape[2:])  # noqa: E731
-    o, a, n = flat(obs), flat(acts), flat(nxt)
+    pred = jax.vmap(lambda x: predict(model_old, x)[0])(tr.inputs) + mean_old
+    model_error = _relative_error(pred[:, :e], tr.targets[:, :e], tr.valid)
+    o, a, n = tr.obs, tr.actions, tr.next_obs
     end = None if task.end_fn is None else jax.vmap(task.end_fn)(n).astype(o.dtype)
     reward_pred = jax.vmap(lambda *args: objective.reward(task, prog.hold, *args))(o, a, n, end, pred)
-    model_reward_error = _relative_error(reward_pred, rewards, valid)
+    return model_error, _relative_error(reward_pred, tr.rewards, tr.valid)
 
-    data = take_in(data, xs, ys, valid)
+
+def improve(prog, cfg, model, target_mean, key, controller_params, hallucination):
+    """The controller's optimisation through the model: the update's plan (`make_plan`, under the
+    settings' use of the uncertainty) and the optimiser's steps on its simulated return
+    (`optimise`). Returns (params, hallucination, return before, return after)."""
+    own = cfg.settings
+    use = uncertainty.get(own.exploration)
+    plan = uncertainty.make_plan(prog, cfg, model, key, use, own.particles, plan_steps(prog, cfg))
+    return optimise(
+        prog, model, target_mean, plan, controller_params, hallucination,
+        num_steps=own.steps, learning_rate=own.learning_rate, beta=own.beta,
+        optimistic=use.hallucinates, optimizer=own.optimizer, end_softness=own.end_softness,
+        objective=objectives.for_task(prog.task, own.reward))
+
+
+def _update(prog, cfg, state, batch, actor: Actor):
+    """Steps 3-4 of gp_model: take in, refit, condition, optimise (module notes)."""
+    task, own = prog.task, cfg.settings
+    data: ModelData = state.method_state
+    e = task.obs_dim
+    tr = transitions(prog, cfg, batch.episodes)
+    k_fit, k_plan = model_keys(state)
+    first = data.count == 0
+    model_error, model_reward_error = model_errors(prog, cfg, data, tr)
+    data = take_in(data, tr.inputs, tr.targets, tr.valid)
     data = data._replace(log_kernels=refit(k_fit, data, subset_size=own.fit_subset,
                                            num_steps=own.fit_steps, first=first))
     model, target_mean = build(data, own.inducing)
-    plan = uncertainty.make_plan(prog, cfg, model, k_plan, use, own.particles, plan_steps(prog, cfg))
-    params, halluc, before, after = optimise(
-        prog, model, target_mean, plan, state.theta.controller, data.hallucination,
-        num_steps=own.steps, learning_rate=own.learning_rate, beta=own.beta,
-        optimistic=use.hallucinates, optimizer=own.optimizer, end_softness=own.end_softness,
-        objective=objective)
+    params, halluc, before, after = improve(prog, cfg, model, target_mean, k_plan,
+                                            state.theta.controller, data.hallucination)
     data = data._replace(hallucination=halluc)
     theta = actor.act_with(prog, cfg, state.theta, params)
     kern = jax.vmap(hyperfit.from_log)(data.log_kernels)
