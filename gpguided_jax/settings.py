@@ -90,7 +90,7 @@ def to_flat(s, which: str = "all") -> dict[str, Any]:
     cls = type(s)
     names = {"all": cls.STATIC + cls.TRACED, "static": cls.STATIC, "traced": cls.TRACED}[which]
     out = {}
-    for n in sorted(names, key=list(cls.FLAT).index):
+    for n in (n for n in cls.FLAT if n in names):  # in declaration order
         v = getattr(s, n)
         out[cls.FLAT[n]] = v if n in cls.STATIC else np.asarray(v).tolist()
     return out

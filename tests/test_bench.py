@@ -1,6 +1,8 @@
 """`gpguided bench` end to end at tiny sizes, and the benchmark table generated from its report."""
 
+import importlib.util
 import json
+import os
 
 import pytest
 from conftest import ROOT, run_script
@@ -8,13 +10,21 @@ from conftest import ROOT, run_script
 pytestmark = pytest.mark.cli
 
 
+
+def _docs_tables(results_dir):
+    """experiments/docs_tables.py, reading its result files from `results_dir`."""
+    spec = importlib.util.spec_from_file_location(
+        "docs_tables", os.path.join(ROOT, "experiments", "docs_tables.py"))
+    tables = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tables)
+    tables.RESULTS = str(results_dir)
+    return tables
+
 def test_gpguided_bench_quick_writes_the_report_the_readme_table_is_made_from(tmp_path):
     """`gpguided bench` end to end at tiny sizes (2 runs of each figure, the whole-command timing
     included): stdout and --out hold the same report, every timing is a median of its runs, the
     ratios are the quotients they claim, and the README's bench tables render from it."""
-    import importlib.util
     import math
-    import os
 
     path = tmp_path / "bench.json"
     # every section but gp_model's, which the next test runs
@@ -65,11 +75,7 @@ def test_gpguided_bench_quick_writes_the_report_the_readme_table_is_made_from(tm
     check_stats(report["paper_run"]["cold_s"], runs=1)  # the quick run times the command once
     check_stats(report["paper_run"]["warm_s"], runs=1)
 
-    spec = importlib.util.spec_from_file_location(
-        "docs_tables", os.path.join(ROOT, "experiments", "docs_tables.py"))
-    tables = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tables)
-    tables.RESULTS = str(tmp_path)
+    tables = _docs_tables(tmp_path)
     table = tables.bench_table()
     assert f"**{n['ratio_jax_over_numpy']:.1f}x**" in table
     assert "median [min, max] of 2 runs" in table
@@ -89,9 +95,7 @@ def test_gp_model_section_at_tiny_sizes_merged_into_a_report(tmp_path):
     the medians over the seeds), on the state after its warm-up updates (the buffer holds their
     transitions); the parts add up to the whole within a loose factor; the seed scaling has a
     row per seed count; and the docs' table renders from the report."""
-    import importlib.util
     import math
-    import os
 
     from gpguided_jax import bench
 
@@ -141,11 +145,7 @@ def test_gp_model_section_at_tiny_sizes_merged_into_a_report(tmp_path):
         assert row["compile_s"] > 0
         assert math.isclose(row["per_seed_s"], row["run_s"]["median"] / row["seeds"], rel_tol=1e-12)
 
-    spec = importlib.util.spec_from_file_location(
-        "docs_tables", os.path.join(ROOT, "experiments", "docs_tables.py"))
-    tables = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tables)
-    tables.RESULTS = str(tmp_path)
+    tables = _docs_tables(tmp_path)
     table = tables.bench_model_table()
     for label in tables.MODEL_PART_LABELS.values():
         assert table.count(f"| pendulum-v1 | {label} |") == 1
