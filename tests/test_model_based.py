@@ -297,7 +297,7 @@ def test_the_stated_reward_of_a_task_that_states_none_is_refused_in_one_line():
     task = _linear_task()._replace(name="test:unstated", reward_fn=None)
     tasks.register(task)
     try:
-        with pytest.raises(ValueError, match="model_reward: 'stated'.*does not state"):
+        with pytest.raises(ValueError, match="model_reward: .stated. plans with what .*reward_fn"):
             C.make_config(env="test:unstated", method="gp_model", model_reward="stated")
         cfg = C.make_config(env="test:unstated", method="gp_model")
         assert MB.learns_reward(tasks.make_task(cfg.env), cfg)

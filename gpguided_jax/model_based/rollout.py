@@ -64,7 +64,7 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
             r = objective.reward(task, hold, obs, a, nxt, p_end, out)
             if p_end is None:
                 return (nxt, alive), r
-            return (nxt, alive * (1.0 - p_end)), alive * r
+            return (nxt, alive * (1.0 - p_end)), alive * r if objective.alive_weighted else r
 
         _, rewards = jax.lax.scan(step, (obs0, jnp.ones((), obs0.dtype)), eps)
         return jnp.sum(rewards)

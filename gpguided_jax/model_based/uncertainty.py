@@ -88,13 +88,24 @@ class Plan(NamedTuple):
 
 
 def make_plan(prog, cfg, model: SparseModel, key, use: str | Uncertainty, num_particles: int,
-              num_steps: int) -> Plan:
-    """The particles' start states (the task's start distribution), functions and noise for one
-    update's roll-outs under the use of the uncertainty `use`."""
+              num_steps: int, visited=None, num_visited: int = 0) -> Plan:
+    """The particles' start states, functions and noise for one update's roll-outs under the use
+    of the uncertainty `use`. The start states are draws from the task's start distribution
+    (`Task.reset`), but for the last `num_visited` particles, which start from observations the
+    real episodes visited: `visited` = (obs (C, obs_dim), valid (C,)), drawn uniformly among the
+    valid rows."""
     use = get(use)
     task = prog.task
     k_start, k_w, k_n = jax.random.split(key, 3)
     start = jax.vmap(lambda k: task.reset(k, cfg)[1])(jax.random.split(k_start, num_particles))
+    if num_visited:
+        obs, valid = visited
+        p = valid.astype(obs.dtype)
+        rows = jax.random.choice(jax.random.fold_in(k_start, 1), obs.shape[0], (num_visited,),
+                                 p=p / jnp.maximum(jnp.sum(p), 1.0))
+        # before any data (no valid row), every particle starts from the start distribution
+        seen = jnp.where(jnp.any(valid), obs[rows], start[num_particles - num_visited:])
+        start = start.at[num_particles - num_visited:].set(seen)
     e = model.weights.shape[0]
     weights = use.functions(model, k_w, num_particles)
     shape = (num_particles, num_steps, e)
