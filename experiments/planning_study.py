@@ -70,9 +70,10 @@ PARTS = {
     "inverted-pendulum": {"objective": [{"model_reward": "survival"},
                                         {"model_reward": "saturating"}],
                           "controller": _CONTROLLERS, **_SEARCH_PARTS},
+    # a run costs ten times the single pendulum's here: the objectives and one controller
     "inverted-double-pendulum": {"objective": [{"model_reward": "survival"},
                                                {"model_reward": "saturating"}],
-                                 "controller": _CONTROLLERS, **_SEARCH_PARTS},
+                                 "controller": _CONTROLLERS[1:2]},
     "swingup": {"objective": [{"model_reward": "saturating"}],
                 "controller": _CONTROLLERS[:2], **_SEARCH_PARTS},
     "pendulum-v1": {"objective": [{"model_reward": "saturating"}],
