@@ -79,6 +79,15 @@ class Controller(NamedTuple):
     value_and_grad: Callable[[Params, jax.Array], tuple[jax.Array, Params]] | None = None
 
 
+def mean_and_grad(controller: Controller, params: Params, state: jax.Array):
+    """(c(s), dc/dtheta_c): the controller's hand-derived `value_and_grad`, or autodiff of its
+    `apply` for a controller that declares none (the roll-outs' score function needs the
+    gradient whatever the controller)."""
+    if controller.value_and_grad is not None:
+        return controller.value_and_grad(params, state)
+    return jax.value_and_grad(controller.apply)(params, state)
+
+
 def _preactivation(params: Params, psi: Params) -> jax.Array:
     """z = <theta_c, psi(s)>, summed over every leaf."""
     products = jax.tree_util.tree_map(lambda w, f: jnp.sum(w * f), params, psi)

@@ -232,7 +232,7 @@ def rollout(prog: Program, key, theta, ctx, policy, cfg: TrainConfig) -> Episode
             a = controller.apply(exploration.perturbed_parameters(theta.controller, draw, scale),
                                  obs)
             # the action's standard deviation at this state, to first order in the noise
-            _, grad = controller.value_and_grad(theta.controller, obs)
+            _, grad = controllers_lib.mean_and_grad(controller, theta.controller, obs)
             sq = sum(jnp.sum(g * g) for g in jax.tree_util.tree_leaves(grad))
             return a, scale * jnp.sqrt(sq)
 

@@ -315,3 +315,27 @@ def test_fresh_draws_optimise_on_another_plan_at_every_step(balance):
         fresh_plan=lambda i: MB.make_plan(prog, cfg, model, jax.random.fold_in(
             jax.random.key(10), i), "mean", 4, 10))[0]
     assert not np.allclose(np.asarray(other.weights), np.asarray(crn.weights))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("controller", ["rbf_trainable", "linear_rbf"])
+def test_gp_model_trains_with_a_trainable_controller_and_every_search_option(controller):
+    """A whole run (two updates) on the paper's pendulum with a trainable controller, the
+    saturating objective and every option of the search: its records are finite, the real
+    episodes act with the controller (their noise's score needs its gradient, by autodiff) and
+    the update moved its centres and widths."""
+    from gpguided_jax import train as T
+
+    cfg = C.make_config(method="gp_model", controller=controller, episode_length=20,
+                        num_updates=2, episodes_per_update=1, model_inducing=20,
+                        model_particles=4, model_horizon=0.2, model_steps=3,
+                        model_reward="saturating", model_visited_starts=0.5,
+                        model_fresh_draws=True, model_keep_best=True, model_restarts=2,
+                        model_held_aside=2, model_final_rate=0.1)
+    state, rec = jax.jit(T.make_train(cfg))(jax.random.key(11))
+    for name in ("model_return", "model_gain", "eval_return" if cfg.eval_episodes else "mean_reward"):
+        assert np.all(np.isfinite(np.asarray(getattr(rec, name)))), name
+    start = rollouts.make_controller(cfg).init(jnp.float64)
+    assert not np.allclose(np.asarray(state.theta.controller.centres), np.asarray(start.centres))
+    assert not np.allclose(np.asarray(state.theta.controller.log_widths),
+                           np.asarray(start.log_widths))
