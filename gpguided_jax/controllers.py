@@ -216,14 +216,15 @@ class TrainableRBFParams(NamedTuple):
         units (PILCO's shared lengthscales).
       weights: (M,) output weights.
       bias: () bias added before the squashing.
-      linear: (K,) weights of a linear part w^T y(s) ((0,) for the network alone).
+      linear: (K,) weights of a linear part w^T y(s) (None for the network alone: no leaf, so
+        that every leaf has a size).
     """
 
     centres: jax.Array
     log_widths: jax.Array
     weights: jax.Array
     bias: jax.Array
-    linear: jax.Array
+    linear: jax.Array | None
 
 
 def trainable_rbf_controller(embed: Callable[[jax.Array], jax.Array], centres, widths, u_max: float,
@@ -256,7 +257,7 @@ def trainable_rbf_controller(embed: Callable[[jax.Array], jax.Array], centres, w
         dtype = dtype or jnp.result_type(float)
         return TrainableRBFParams(jnp.asarray(centres, dtype), jnp.asarray(log_widths, dtype),
                                   jnp.zeros((m,), dtype), jnp.zeros((), dtype),
-                                  jnp.zeros((k if linear else 0,), dtype))
+                                  jnp.zeros((k,), dtype) if linear else None)
 
     return Controller(init=init, apply=apply, u_max=float(u_max))
 
