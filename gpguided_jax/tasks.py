@@ -321,9 +321,10 @@ def _sparse_pendulum(action_cost: float):
         def start(key):
             k_reset, k_near = jax.random.split(key)
             _, state = env.reset_env(k_reset, params)
-            near = jax.random.uniform(k_near, (2,), jnp.float32, -SPARSE_PENDULUM_START,
+            dtype = state.theta.dtype  # gymnax's (float64 in JAX's 64-bit mode)
+            near = jax.random.uniform(k_near, (2,), dtype, -SPARSE_PENDULUM_START,
                                       SPARSE_PENDULUM_START)
-            state = state.replace(theta=jnp.float32(np.pi) + near[0], theta_dot=near[1])
+            state = state.replace(theta=jnp.asarray(np.pi, dtype) + near[0], theta_dot=near[1])
             return state, env.get_obs(state)
 
         def step(key, state, action):

@@ -188,6 +188,24 @@ PRESETS = {
 }
 
 
+# The presets of experiments/exploration_uses_study.py: the car and the swing-up with the reward
+# learnt (the config presets set `model_reward`), the sparse swing-up at each action cost. Their
+# settings are placeholders until that study's tuning chooses them: the model study's preset of
+# the same task (the sparse swing-up: Pendulum-v1's, its 20 learning episodes and roll-outs long
+# enough to swing up in), under the use each study is about, at beta 1.
+PRESETS.update({
+    "mountaincar-continuous-learned": {**PRESETS["mountaincar-continuous"],
+                                       "model_exploration": "optimistic_reward",
+                                       "model_beta": 1.0},
+    "swingup-learned": {**PRESETS["swingup"], "model_exploration": "optimistic_reward",
+                        "model_beta": 1.0},
+    **{f"pendulum-sparse-{c:g}": {**PRESETS["pendulum-v1"], "num_updates": 21,
+                                  "model_horizon": 4.0, "model_exploration": "optimistic",
+                                  "model_beta": 1.0}
+       for c in tasks.SPARSE_PENDULUM_COSTS},
+})
+
+
 def learns_reward(task, cfg) -> bool:
     """Whether gp_model learns the task's reward under `cfg`'s settings (`ModelSettings.reward`)."""
     return objectives.for_task(task, cfg.settings.reward).learned
