@@ -406,3 +406,50 @@ def test_the_presets_of_the_exploration_uses_study_are_the_tasks_it_asks_about()
     for cost in tasks.SPARSE_PENDULUM_COSTS:
         cfg = C.preset(f"pendulum-sparse-{cost:g}", method="gp_model")
         assert cfg.env == f"gymnax:Pendulum-v1-sparse-{cost:g}" and cfg.num_updates == 21
+
+
+def _exploration_uses_study():
+    import importlib.util
+    import os
+    import sys
+
+    experiments = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                               "experiments")
+    sys.path.insert(0, experiments)  # it imports model_study and planning_study by name
+    try:
+        spec = importlib.util.spec_from_file_location(
+            "exploration_uses_study", os.path.join(experiments, "exploration_uses_study.py"))
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(experiments)
+    return module
+
+
+def test_the_study_s_grid_covers_every_use_from_the_model_study_s_settings():
+    """experiments/exploration_uses_study.py: on every task every use of the uncertainty, the
+    optimistic ones at 3 values of beta and the information bonus at 3 weights (and on the sparse
+    swing-up H-UCRL's stated-reward pair); every configuration a valid config in which the
+    preset's placeholders are replaced by the model study's tuned settings, the reward learnt
+    where the choice does not say otherwise; its budget's updates, and its held-out seeds."""
+    study = _exploration_uses_study()
+    assert set(study.TASKS) == {"mountaincar-continuous-learned", "swingup-learned",
+                                "pendulum-sparse-0", "pendulum-sparse-0.1", "pendulum-sparse-0.2"}
+    for task in study.TASKS:
+        grid = study.grid(task)
+        assert set(MB.EXPLORATIONS) <= set(grid)
+        for use in ("optimistic", "optimistic_reward", "optimistic_joint", "information"):
+            assert len(grid[use]) == 3 and all(c["model_exploration"] == use for c in grid[use])
+        assert ("optimistic_stated" in grid) == task.startswith("pendulum-sparse")
+        today = study.PS.today(study.BASE_TASK[task])
+        for choice, configs in grid.items():
+            for c in configs:
+                cfg = C.preset(task, method="gp_model", **study.overrides(task, c))
+                assert cfg.settings.exploration == c["model_exploration"]
+                assert cfg.settings.reward == c.get("model_reward", "learned")
+                assert cfg.num_updates == {"mountaincar-continuous-learned": 11,
+                                           "swingup-learned": 11}.get(task, 21)
+                for k, v in today.items():
+                    if k not in c and k not in study.FIXED[task]:
+                        assert cfg.value(k) == pytest.approx(v), (task, choice, k)
+        assert len(study.heldout_seeds(task)) == (20 if task == "swingup-learned" else 10)
