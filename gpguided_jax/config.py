@@ -630,6 +630,20 @@ PRESETS.update({
 })
 
 
+# gp_model's uses of its uncertainty where the reward must be found
+# (experiments/exploration_uses_study.py): the car and the swing-up with gp_model's reward learnt
+# (the presets' tasks and budgets as they are; another method ignores `model_reward`), and the
+# sparse swing-up on Pendulum-v1 at each action cost (`tasks.SPARSE_PENDULUM_COSTS`; the
+# standard Pendulum-v1 preset's budget and settings).
+PRESETS.update({
+    "mountaincar-continuous-learned": dict(PRESETS["mountaincar-continuous"],
+                                           model_reward="learned"),
+    "swingup-learned": dict(PRESETS["swingup"], model_reward="learned"),
+    **{f"pendulum-sparse-{c:g}": dict(PRESETS["pendulum-v1"], env=f"gymnax:{i}")
+       for i, c in zip(tasks.SPARSE_PENDULUM_IDS, tasks.SPARSE_PENDULUM_COSTS)},
+})
+
+
 # Per standard preset, brax's PPO and SAC as tuned with the methods' budget
 # (experiments/standard_tasks.py tune; docs/standard_tasks.md): overrides of
 # `baselines.PPO_DEFAULTS` / `SAC_DEFAULTS`, a 'horizon' in seconds for the discount.

@@ -25,6 +25,10 @@ Three kinds of task are supported (`make_task(name)`):
   goal changes nothing within an episode: a car is at or past the goal moving left only after a
   step that began past the goal, and it first gets there moving right, which ends the episode
   (tests/test_task_reference.py steps both tasks beside gymnasium's environments).
+  ``gymnax:Pendulum-v1-sparse-<rho>`` (rho 0, 0.1, 0.2: `SPARSE_PENDULUM_COSTS`) is Pendulum-v1's
+  step from hanging with H-UCRL's sparse swing-up reward less an action cost rho
+  (`sparse_pendulum_reward`; `GYMNAX_VARIANTS`: a gymnax environment with another start and
+  reward, named by its gymnax id and the variant).
 * ``brax:<name>``: a brax environment through brax's own `Env` (``reset(rng)``, ``step(state,
   action)``): inverted_pendulum and inverted_double_pendulum. brax's environments neither take a key
   in `step` nor clip the action; the action is clipped to brax's range [-1, 1] before the step.
@@ -65,8 +69,12 @@ from gpguided_jax import controllers as controllers_lib
 from gpguided_jax import kernels, pendulum
 
 GYMNAX_ENVS = ("Pendulum-v1", "MountainCarContinuous-v0")
+# the action costs rho of the sparse swing-up (`sparse_pendulum_reward`): H-UCRL's figure's
+SPARSE_PENDULUM_COSTS = (0.0, 0.1, 0.2)
+SPARSE_PENDULUM_IDS = tuple(f"Pendulum-v1-sparse-{c:g}" for c in SPARSE_PENDULUM_COSTS)
 BRAX_ENVS = ("inverted_pendulum", "inverted_double_pendulum")
-SUPPORTED = ("pendulum", *(f"gymnax:{e}" for e in GYMNAX_ENVS), *(f"brax:{e}" for e in BRAX_ENVS))
+SUPPORTED = ("pendulum", *(f"gymnax:{e}" for e in GYMNAX_ENVS + SPARSE_PENDULUM_IDS),
+             *(f"brax:{e}" for e in BRAX_ENVS))
 
 PLACEMENT_EPISODES = 16  # random-action episodes that place the normalisation and RBF centres
 PLACEMENT_KEY = 20120610  # their fixed key (the same placement for every seed and method)
@@ -194,6 +202,12 @@ def _pendulum_tip_from_upright(obs):
 # same, with the threshold 9,100.
 THRESHOLDS = {"gymnax:Pendulum-v1": -200.0, "gymnax:MountainCarContinuous-v0": 90.0,
               "brax:inverted_pendulum": 950.0, "brax:inverted_double_pendulum": 9100.0}
+# The sparse swing-up (200 steps of 0.05 s, a reward of at most 1 a step): swung up and held, 100
+# steps' worth of reward upright and still (half the episode) less 100 steps of the full action
+# cost, 100 (1 - rho). An energy-pumping controller with a PD catch, tuned by hand on the
+# physics, swings up from hanging in about 70 steps and scores 131 at rho = 0 and 122 at 0.2.
+THRESHOLDS.update({f"gymnax:{i}": 100.0 * (1.0 - c)
+                   for i, c in zip(SPARSE_PENDULUM_IDS, SPARSE_PENDULUM_COSTS)})
 
 
 class _Adapter(NamedTuple):
@@ -208,6 +222,9 @@ class _Adapter(NamedTuple):
     end_margin: Callable | None = None  # (next_obs, scale) -> signed margin (`Task.end_margin`)
     target: Callable | None = None  # obs -> displacement from the target (`Task.target`)
     target_width: float = 1.0
+    # key -> (env_state, obs): the task's start where it is not `reset`'s (`reset` then places
+    # the normalisation and the RBF centres over the environment's own start distribution)
+    start: Callable | None = None
 
 
 def _pendulum_v1_reward(params):
@@ -257,6 +274,75 @@ GYMNAX_TARGETS = {"Pendulum-v1": (_pendulum_v1_target, 0.5),
                   "MountainCarContinuous-v0": (_car_target, 0.2)}
 
 
+def tolerance(x, lower, upper, margin):
+    """rllib's `tolerance` (sebascuri/rllib, rllib/reward/utilities.py), which H-UCRL's rewards
+    are built of: 1 on [lower, upper], outside it 0.1^(d / margin)^2 at the distance d from the
+    interval (its `gaussian` with value 0.1 at d = margin)."""
+    half = 0.5 * (upper - lower)
+    d = jnp.maximum(jnp.abs(x - (lower + half)) - half, 0.0) / margin
+    return jnp.exp(jnp.log(0.1) * d * d)
+
+
+def sparse_pendulum_reward(obs, action, next_obs=None, end=None, *, action_cost: float,
+                           max_torque: float = 2.0):
+    """H-UCRL's sparse swing-up reward (Curi, Berkenkamp & Krause, NeurIPS 2020; sebascuri/hucrl,
+    exps/inverted_pendulum/util.py, `PendulumReward`) of the state an action is taken in, from
+    Pendulum-v1's observation (cos theta, sin theta, theta_dot), theta = 0 upright:
+
+      tol(cos theta; [0.95, 1], 0.1) tol(theta_dot; [-0.5, 0.5], 0.5)
+        + rho (tol(u / u_max; [-0.1, 0.1], 0.1) - 1),
+
+    `tolerance` rllib's, rho = `action_cost`, u the torque clipped to the bound u_max (hucrl's
+    action is in units of its bound: its model clamps it to [-1, 1]). The state's part is 1
+    within about 18 degrees of upright and 0.5 rad/s of still, and below 1e-40 hanging; the
+    action's part costs rho for any torque past 0.3 u_max, nothing within 0.1 u_max.
+    rllib's own PendulumSwingUp-v0 (rllib/environment/mujoco/pendulum_swing_up.py, sparse=True)
+    has the same form with the angle's margin 0.3 and the raw torque in the action's."""
+    del next_obs, end
+    u = jnp.clip(action, -max_torque, max_torque) / max_torque
+    upright = tolerance(obs[0], 0.95, 1.0, 0.1) * tolerance(obs[2], -0.5, 0.5, 0.5)
+    return upright + action_cost * (tolerance(u, -0.1, 0.1, 0.1) - 1.0)
+
+
+SPARSE_PENDULUM_START = 0.01  # the start's spread about hanging and still (rllib's swing-up's)
+
+
+def _sparse_pendulum(action_cost: float):
+    """Pendulum-v1 as the sparse swing-up with action cost rho (`sparse_pendulum_reward`): gymnax's
+    step, its reward replaced; each episode starts hanging, theta = pi + U(-0.01, 0.01), theta_dot =
+    U(-0.01, 0.01) (H-UCRL's starts at (pi, 0) exactly, rllib's swing-up within 0.01 of it), where
+    gymnax draws theta over the whole circle. gymnax's start still places the normalisation and
+    the RBF centres (`_Adapter.start`), so that they cover the upright states the reward pays."""
+
+    def variant(env, params, adapter: _Adapter) -> _Adapter:
+        reward = functools.partial(sparse_pendulum_reward, action_cost=action_cost,
+                                   max_torque=float(params.max_torque))
+
+        def start(key):
+            k_reset, k_near = jax.random.split(key)
+            _, state = env.reset_env(k_reset, params)
+            dtype = state.theta.dtype  # gymnax's (float64 in JAX's 64-bit mode)
+            near = jax.random.uniform(k_near, (2,), dtype, -SPARSE_PENDULUM_START,
+                                      SPARSE_PENDULUM_START)
+            state = state.replace(theta=jnp.asarray(np.pi, dtype) + near[0], theta_dot=near[1])
+            return state, env.get_obs(state)
+
+        def step(key, state, action):
+            before = env.get_obs(state)
+            state, obs, _, done = adapter.step(key, state, action)
+            return state, obs, reward(before, jnp.reshape(action, ())), done
+
+        return adapter._replace(step=step, start=start, reward_fn=reward)
+
+    return variant
+
+
+# gymnax environments with another start and reward: id -> (gymnax's id, the variant of its
+# adapter, `variant(env, params, adapter) -> adapter`)
+GYMNAX_VARIANTS = {i: ("Pendulum-v1", _sparse_pendulum(c))
+                   for i, c in zip(SPARSE_PENDULUM_IDS, SPARSE_PENDULUM_COSTS)}
+
+
 def _gymnax_adapter(env_id: str) -> _Adapter:
     try:
         import gymnax
@@ -264,6 +350,8 @@ def _gymnax_adapter(env_id: str) -> _Adapter:
         raise TaskError(f"gymnax:{env_id} needs gymnax: pip install 'gpguided_jax[gymnax]' ({e})") from e
     from gymnax.environments import spaces
 
+    name = env_id
+    env_id, variant = GYMNAX_VARIANTS.get(name, (name, None))
     if env_id not in gymnax.registered_envs:
         raise TaskError(f"unknown environment 'gymnax:{env_id}'; {_supported_line()}")
     env, params = gymnax.make(env_id)
@@ -289,8 +377,9 @@ def _gymnax_adapter(env_id: str) -> _Adapter:
     dt = float(getattr(params, "dt", 1.0))  # an environment without a time (the car): 1 s a step
     stated = GYMNAX_REWARDS[env_id](params) if env_id in GYMNAX_REWARDS else (None, None, None)
     target = GYMNAX_TARGETS.get(env_id, (None, 1.0))
-    return _Adapter(int(np.prod(env.observation_space(params).shape)), dt, max_action,
-                    int(params.max_steps_in_episode), reset, step, *stated, *target)
+    adapter = _Adapter(int(np.prod(env.observation_space(params).shape)), dt, max_action,
+                       int(params.max_steps_in_episode), reset, step, *stated, *target)
+    return adapter if variant is None else variant(env, params, adapter)
 
 
 def gymnasium_car_wall(env, state, params):
@@ -451,10 +540,12 @@ START_DRAWS = 64  # start observations drawn when a task is made (the trainable 
 
 
 def _start_observations(adapter: _Adapter) -> np.ndarray:
-    """`START_DRAWS` observations of the start distribution, with a fixed key: (n, obs_dim)."""
+    """`START_DRAWS` observations of the task's start distribution, with a fixed key: (n,
+    obs_dim)."""
     keys = jax.random.split(jax.random.key(PLACEMENT_KEY + 1), START_DRAWS)
+    start = adapter.start or adapter.reset
     with jax.default_device(jax.devices("cpu")[0]):
-        obs = jax.jit(jax.vmap(lambda k: adapter.reset(k)[1]))(keys)
+        obs = jax.jit(jax.vmap(lambda k: start(k)[1]))(keys)
     return np.asarray(obs, np.float64)
 
 
@@ -505,9 +596,10 @@ def _external_task(name: str, adapter: _Adapter) -> Task:
     rbf_centres = farthest_point_centres(z, RBF_CENTRES)
     rbf_width = controllers_lib.mean_gap(rbf_centres)
     starts = _start_observations(adapter)
+    start = adapter.start or adapter.reset
 
     def reset(key, cfg):
-        env_state, o = adapter.reset(key)
+        env_state, o = start(key)
         return env_state, jnp.asarray(o, cfg.dtype)
 
     def step(key, env_state, action, cfg):

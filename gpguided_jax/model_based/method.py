@@ -67,7 +67,8 @@ class ModelSettings:
       steps: optimiser steps on the simulated return per update.
       horizon: the simulated roll-outs' horizon, seconds.
       exploration: the use of the model's uncertainty in them (`uncertainty.USES`: 'mean',
-        'sample', 'thompson', 'optimistic').
+        'sample', 'thompson', 'optimistic', 'optimistic_reward', 'optimistic_joint',
+        'information'; the two optimistic about the reward need it learnt).
       optimizer: the controller's optimiser (`optimise.OPTIMISERS`: 'adam', 'lbfgs').
       visited_starts: the share of the particles that start from observations the real episodes
         visited (drawn from the buffer), the others from the task's start distribution.
@@ -89,7 +90,12 @@ class ModelSettings:
       learning_rate: Adam's step size on the simulated return.
       final_rate: the step size's cosine decay over the steps, to this fraction of the first
         (1: constant; Adam only).
-      beta: the confidence multiple of the hallucinated control ('optimistic').
+      beta: the confidence multiple of the hallucinated control ('optimistic',
+        'optimistic_joint') and of the learnt reward's upper confidence bound
+        ('optimistic_reward', 'optimistic_joint').
+      information_weight: lambda, the weight of the information bonus lambda sum_e sigma_e^2
+        ('information'; the dynamics' epistemic variance in the normalised observation's units
+        squared), constant over a run (`uncertainty` module notes).
       end_softness: the smoothing of a task's end in the simulated roll-outs (the temperature of
         the end's probability, in units of the observation's normalisation scale).
     """
@@ -113,6 +119,7 @@ class ModelSettings:
     final_rate: Any = 1.0
     beta: Any = 1.0
     end_softness: Any = 0.1
+    information_weight: Any = 1.0
 
     def check(self, cfg) -> None:
         """Raises `settings.SettingError` naming the first setting that makes no sense."""
@@ -136,8 +143,14 @@ class ModelSettings:
         settings_lib.traced(flat["learning_rate"], self.learning_rate, positive=True)
         settings_lib.traced(flat["end_softness"], self.end_softness, positive=True)
         settings_lib.traced(flat["beta"], self.beta, non_negative=True)
+        settings_lib.traced(flat["information_weight"], self.information_weight,
+                            non_negative=True)
         task = tasks.make_task(cfg.env)
         objective = objectives.for_task(task, self.reward)
+        if uncertainty.get(self.exploration).reward_optimism and not objective.learned:
+            settings_lib.fail(flat["exploration"], f"{self.exploration!r} is optimistic about a "
+                              f"learnt reward, and {cfg.env} plans with {objective.name!r}: set "
+                              "model_reward='learned'")
         lacks = objectives.missing(task, objective)
         if lacks is not None:
             hint = "; 'learned' or 'auto' learns the reward" if objective is objectives.STATED else ""
@@ -173,6 +186,24 @@ PRESETS = {
                                  "min_std": 0.05, "eval_episodes": 5, "model_capacity": 3000,
                                  "model_horizon": 4.0, "model_exploration": "optimistic"},
 }
+
+
+# The presets of experiments/exploration_uses_study.py: the car and the swing-up with the reward
+# learnt (the config presets set `model_reward`), the sparse swing-up at each action cost. Their
+# settings are placeholders until that study's tuning chooses them: the model study's preset of
+# the same task (the sparse swing-up: Pendulum-v1's, its 20 learning episodes and roll-outs long
+# enough to swing up in), under the use each study is about, at beta 1.
+PRESETS.update({
+    "mountaincar-continuous-learned": {**PRESETS["mountaincar-continuous"],
+                                       "model_exploration": "optimistic_reward",
+                                       "model_beta": 1.0},
+    "swingup-learned": {**PRESETS["swingup"], "model_exploration": "optimistic_reward",
+                        "model_beta": 1.0},
+    **{f"pendulum-sparse-{c:g}": {**PRESETS["pendulum-v1"], "num_updates": 21,
+                                  "model_horizon": 4.0, "model_exploration": "optimistic",
+                                  "model_beta": 1.0}
+       for c in tasks.SPARSE_PENDULUM_COSTS},
+})
 
 
 def learns_reward(task, cfg) -> bool:
