@@ -114,12 +114,22 @@ BESIDE = tuple(reversed(baselines.NAMES))
 PAPER = tuple(f"{m}{end}" for end in ("", "_restart") for m in (*config_lib.PAPER_METHODS, "gp_critic"))
 
 
+def planned(task: str) -> dict:
+    """The settings the planning study chose for `task` on top of this study's
+    (docs/results/planning/<task>/tuning.json's `chosen`; experiments/planning_study.py), which
+    the preset holds too: {} where it has not run."""
+    path = os.path.join(ROOT, "docs", "results", "planning", task, "tuning.json")
+    return study.read_json(path, {}).get("chosen", {}) if os.path.exists(path) else {}
+
+
 def base(task: str) -> dict:
     """The settings every run of `task` starts from: gp_model's preset
     (`config.METHOD_PRESETS[task]['gp_model']`) without the settings the search chose (those of
-    `GRIDS[task]`) and the budget's updates, and where the search starts in those (`START`)."""
+    `GRIDS[task]`), those the planning study chose after it (`planned`) and the budget's updates,
+    and where the search starts in those (`START`)."""
     searched = {p for params, _ in GRIDS[task]
                 for p in (params if isinstance(params, (tuple, list)) else (params,))}
+    searched |= set(planned(task))
     start = START.get(task, {})
     preset = config_lib.METHOD_PRESETS[task][METHOD]
     kept = {k: start.get(k, v) for k, v in preset.items()
