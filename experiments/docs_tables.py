@@ -809,6 +809,58 @@ def model_tuning_table(task: str) -> str:
 # with a gp_model study (its tuning record and held-out runs)
 MODEL_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
                "inverted-double-pendulum", "swingup")
+HEADLINE_TASKS = {"pendulum-v1": "Pendulum-v1", "mountaincar-continuous": "MountainCarContinuous-v0",
+                  "inverted-pendulum": "brax inverted_pendulum",
+                  "inverted-double-pendulum": "brax inverted_double_pendulum",
+                  "swingup": "the swing-up"}
+
+
+def headline_rows() -> list[dict]:
+    """Per task of `HEADLINE_TASKS`, from the gp_model study's held-out table
+    (model/<task>/heldout_table.json, which reads SAC's, PPO's and the paper's methods' runs from
+    the standard tasks' and the swing-up studies' files): the task's threshold and the rows of
+    gp_model under its tuned use of the uncertainty (model/<task>/tuning.json), the best of the
+    paper's methods and gp_critic, SAC and PPO."""
+    out = []
+    for task, label in HEADLINE_TASKS.items():
+        with open(os.path.join(RESULTS, "model", task, "heldout_table.json")) as f:
+            d = json.load(f)
+        with open(os.path.join(RESULTS, "model", task, "tuning.json")) as f:
+            choice = json.load(f)["chosen"]["model_exploration"]
+        rows = {r["method"]: r for r in d["rows"]}
+        out.append(dict(task=task, label=label, measure=d["measure"], threshold=d["threshold"],
+                        seeds=d["seeds"], choice=choice, gp_model=rows[f"gp_model ({choice})"],
+                        paper=rows[d["paper_best"]], sac=rows["sac"], ppo=rows["ppo"]))
+    return out
+
+
+def _headline_cell(r: dict) -> str:
+    return (f"{_steps(r['steps_to_threshold_median'])} of {_steps(r['env_steps'])}, "
+            f"{r['seeds_reaching']}/{r['seeds']}")
+
+
+def headline_table() -> str:
+    """The README's headline: per task, environment steps to its threshold and the seeds reaching
+    it, for gp_model, the paper's best method, SAC and PPO (`headline_rows`)."""
+    rows = headline_rows()
+    lines = ["| task | threshold | gp_model | the paper's best | SAC | PPO |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['label']} | {r['measure']} {r['threshold']:g} | "
+                     f"{_headline_cell(r['gp_model'])} | {r['paper']['method']}: "
+                     f"{_headline_cell(r['paper'])} | {_headline_cell(r['sac'])} | "
+                     f"{_headline_cell(r['ppo'])} |")
+    choices = ", ".join(f"{r['label']} {r['choice']}" for r in rows)
+    first = min(s for r in rows for s in r["seeds"])
+    restart = any(r["paper"]["method"].endswith("_restart") for r in rows)
+    lines += ["", _caption(
+        "Each cell: the median environment steps to the threshold over the seeds that reach it, "
+        f"of the steps the run took, and the seeds reaching it. Held-out seeds from {first}. "
+        f"gp_model under its preset's use of the model's uncertainty ({choices}); the paper's "
+        "best: the best of its methods and gp_critic by final return"
+        + (" (_restart: its episodes restarted after an end)." if restart else "."),
+        _source(*(f"model/{t}/heldout_table.json" for t in HEADLINE_TASKS)))]
+    return "\n".join(lines)
 
 TABLES = {
     "fig5": fig5_table,
@@ -852,6 +904,7 @@ TABLES = {
     **{f"model_{t.replace('-', '_')}": (lambda t=t: model_table(t)) for t in MODEL_TASKS},
     **{f"model_tuning_{t.replace('-', '_')}": (lambda t=t: model_tuning_table(t))
        for t in MODEL_TASKS},
+    "headline": headline_table,
 }
 BLOCK = re.compile(r"(<!-- generated: (\w+) -->\n)(.*?)(<!-- end: \2 -->)", re.S)
 
