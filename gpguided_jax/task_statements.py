@@ -94,14 +94,52 @@ def statement_problem(task: tasks.Task) -> str | None:
     return None
 
 
+def check_against_environment(task: tasks.Task, key=None, num_episodes: int = 4,
+                              dtype: str = "float32") -> dict:
+    """The task's statement against its own steps: `num_episodes` episodes of uniformly random
+    actions, compared up to each episode's first end. The task must be registered (or built in).
+
+    Returns a dict: `reward_error`, the largest |reward_fn(obs, action, next_obs) - reward| over
+    those steps (None without `reward_fn`); `end_disagreements`, the steps at which `end_fn`
+    disagrees with the step's `done` (None without `end_fn`); `steps`, the steps compared. A
+    statement that gp_model plans with as the task is has a `reward_error` at rounding level and
+    no disagreement."""
+    from gpguided_jax import config
+
+    cfg = config.make_config(env=task.name, dtype=dtype)
+    key = jax.random.key(0) if key is None else key
+
+    def episode(k):
+        k_reset, k_steps = jax.random.split(k)
+        env_state, obs = task.reset(k_reset, cfg)
+
+        def body(carry, k_step):
+            env_state, obs, alive = carry
+            k_act, k_env = jax.random.split(k_step)
+            a = jax.random.uniform(k_act, (), obs.dtype, -task.max_action, task.max_action)
+            env_state, nxt, r, done = task.step(k_env, env_state, a, cfg)
+            stated_r = r if task.reward_fn is None else task.reward_fn(obs, a, nxt)
+            stated_end = done if task.end_fn is None else task.end_fn(nxt)
+            out = (alive, jnp.abs(jnp.asarray(stated_r, obs.dtype) - r),
+                   jnp.asarray(stated_end, bool) != jnp.asarray(done, bool))
+            return (env_state, nxt, alive & ~jnp.asarray(done, bool)), out
+
+        _, (alive, err, wrong_end) = jax.lax.scan(
+            body, (env_state, obs, jnp.ones((), bool)),
+            jax.random.split(k_steps, task.episode_length))
+        return alive, err, wrong_end
+
+    alive, err, wrong_end = jax.jit(jax.vmap(episode))(jax.random.split(key, num_episodes))
+    alive = np.asarray(alive)
+    return {"reward_error": None if task.reward_fn is None else float(np.max(np.asarray(err)[alive])),
+            "end_disagreements": (None if task.end_fn is None
+                                  else int(np.sum(np.asarray(wrong_end)[alive]))),
+            "steps": int(np.sum(alive))}
+
+
 def _task(name: str, adapter, *, threshold: float | None) -> tasks.Task:
     task = tasks._external_task(name, adapter)
     return task._replace(threshold=threshold)
-
-
-def _margin(end_margin):
-    """`Task.end_margin` takes the observation only; the adapters' take its scale too."""
-    return None if end_margin is None else (lambda next_obs, scale: end_margin(next_obs))
 
 
 def from_gymnax(env, params, name: str, *, reward_fn=None, end_fn=None, end_margin=None,
@@ -109,8 +147,9 @@ def from_gymnax(env, params, name: str, *, reward_fn=None, end_fn=None, end_marg
     """A gymnax environment object (`gymnax.environments.environment.Environment`, with its
     `params`) with one continuous action as a `tasks.Task` named `name`: stepped by its
     `step_env` (no automatic reset), its observations normalised and its controllers placed as
-    for a named gymnax task. `reward_fn`, `end_fn`, `end_margin`: its statement (module notes;
-    `end_margin` in units of the observation's scale, `Task.obs_scale`); `threshold`: the return
+    for a named gymnax task. `reward_fn`, `end_fn`: its statement (module notes);
+    `end_margin(next_obs, scale)`: the end's signed margin, given the observation's normalisation
+    scale (`Task.obs_scale`, placed when the task is made) to divide by; `threshold`: the return
     at which it counts as solved. Refused with `tasks.TaskError` in one line if its action is not
     one continuous number."""
     from gymnax.environments import spaces
@@ -132,8 +171,7 @@ def from_gymnax(env, params, name: str, *, reward_fn=None, end_fn=None, end_marg
 
     adapter = tasks._Adapter(
         int(np.prod(env.observation_space(params).shape)), float(getattr(params, "dt", 1.0)),
-        max_action, int(params.max_steps_in_episode), reset, step, reward_fn, end_fn,
-        _margin(end_margin))
+        max_action, int(params.max_steps_in_episode), reset, step, reward_fn, end_fn, end_margin)
     return _task(name, adapter, threshold=threshold)
 
 
@@ -159,5 +197,5 @@ def from_brax(env, name: str, *, episode_length: int = 1000, reward_fn=None, end
         warnings.filterwarnings("ignore", message="Brax System, piplines")
         obs_dim = jax.eval_shape(env.reset, jax.random.PRNGKey(0)).obs.shape[-1]
     adapter = tasks._Adapter(int(obs_dim), float(env.dt), 1.0, int(episode_length), reset, step,
-                             reward_fn, end_fn, _margin(end_margin))
+                             reward_fn, end_fn, end_margin)
     return _task(name, adapter, threshold=threshold)
