@@ -30,13 +30,31 @@ h1 { font-size: 1.6rem; margin-bottom: 0.2rem; } h2 { font-size: 1.25rem; margin
 p.meta { color: #59636e; margin-top: 0; }
 .scroll { overflow-x: auto; }
 table { border-collapse: collapse; font-size: 0.85rem; margin: 0.5rem 0 1rem; }
-th, td { border: 1px solid #d0d7de; padding: 0.25rem 0.5rem; text-align: right; white-space: nowrap; }
-th { background: #f6f8fa; } td:first-child, th:first-child { text-align: left; }
+th, td { border: 1px solid #d0d7de; padding: 0.25rem 0.5rem; text-align: left; white-space: nowrap; }
+th { background: #f6f8fa; } td.num { text-align: right; font-variant-numeric: tabular-nums; }
 tr.differs td { background: #fff8c5; }
+table.config td { white-space: normal; max-width: 18rem; overflow-wrap: anywhere; }
 figure { margin: 1rem 0; } figure img { max-width: 100%; border: 1px solid #d0d7de; }
 figcaption { color: #59636e; font-size: 0.9rem; }
 code { background: #f6f8fa; padding: 0.1rem 0.3rem; border-radius: 4px; }
 """
+
+
+# the figures `reproduce` writes, in the order to show them, with their captions; any other PNG of
+# the directory follows, under its file name
+FIGURES = {"fig5_reward.png": "Fig. 5a: the learning episodes' mean reward per step, mean and 95% "
+                              "interval over the seeds",
+           "fig5_exploration.png": "Fig. 5b: the exploration's standard deviation over the visited "
+                                   "states, mean and 95% interval over the seeds"}
+
+
+def _td(text: str) -> str:
+    """A table cell, numbers aligned right."""
+    try:
+        float(text)
+    except ValueError:
+        return f"<td>{html.escape(text)}</td>"
+    return f'<td class="num">{html.escape(text)}</td>'
 
 
 def _cell(value: str) -> str:
@@ -44,10 +62,10 @@ def _cell(value: str) -> str:
     try:
         x = float(value)
     except ValueError:
-        return html.escape(value)
+        return _td(value)
     if math.isnan(x) or math.isinf(x) or x == int(x) and abs(x) < 1e15 and "." not in value:
-        return html.escape(value)
-    return f"{x:.4g}"
+        return _td(value)
+    return _td(f"{x:.4g}")
 
 
 def _csv_table(path: str) -> str:
@@ -56,15 +74,18 @@ def _csv_table(path: str) -> str:
     if not rows:
         return "<p>(empty)</p>"
     head = "".join(f"<th>{html.escape(h)}</th>" for h in rows[0])
-    body = "\n".join("<tr>" + "".join(f"<td>{_cell(v)}</td>" for v in r) + "</tr>" for r in rows[1:])
+    body = "\n".join("<tr>" + "".join(_cell(v) for v in r) + "</tr>" for r in rows[1:])
     return f'<div class="scroll"><table>\n<tr>{head}</tr>\n{body}\n</table></div>'
 
 
 def _value(v) -> str:
+    """A config value as shown: floats to 6 significant digits, also inside lists and dicts."""
     if isinstance(v, float):
         return f"{v:.6g}"
-    if isinstance(v, (dict, list)):
-        return json.dumps(v, separators=(", ", ": "))
+    if isinstance(v, list):
+        return "[" + ", ".join(_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k}: {_value(x)}" for k, x in v.items()) + "}"
     return str(v)
 
 
@@ -76,8 +97,7 @@ def _config_tables(config: dict) -> str:
         s = run["seeds"]
         run["seeds"] = f"{len(s)} seeds, {s[0]}–{s[-1]}" if s == list(range(s[0], s[-1] + 1)) else s
     parts = ['<div class="scroll"><table>']
-    parts += [f"<tr><th>{html.escape(k)}</th><td>{html.escape(_value(v))}</td></tr>"
-              for k, v in run.items()]
+    parts += [f"<tr><th>{html.escape(k)}</th>{_td(_value(v))}</tr>" for k, v in run.items()]
     parts.append("</table></div>")
     methods = config.get("methods", {})
     if methods:
@@ -86,10 +106,10 @@ def _config_tables(config: dict) -> str:
         differs = [f for f in fields if len({_value(methods[m].get(f, "–")) for m in names}) > 1]
         same = [f for f in fields if f not in differs]
         head = "".join(f"<th>{html.escape(m)}</th>" for m in names)
-        parts.append(f'<div class="scroll"><table>\n<tr><th>field</th>{head}</tr>')
+        parts.append(f'<div class="scroll"><table class="config">\n<tr><th>field</th>{head}</tr>')
         for f in differs + same:
             cls = ' class="differs"' if f in differs else ""
-            cells = "".join(f"<td>{html.escape(_value(methods[m].get(f, '–')))}</td>" for m in names)
+            cells = "".join(_td(_value(methods[m].get(f, "–"))) for m in names)
             parts.append(f"<tr{cls}><td>{html.escape(f)}</td>{cells}</tr>")
         parts.append("</table></div>")
     return "\n".join(parts)
@@ -118,13 +138,15 @@ def render(out_dir: str) -> str:
              "The files of the run are beside this page: <code>results.npz</code> (every "
              "record per method, seed and update), <code>summary.csv</code>, "
              "<code>comparisons.csv</code> and <code>config.json</code>.</p>"]
-    figures = sorted(glob.glob(os.path.join(out_dir, "*.png")))
-    if figures:
+    names = sorted(os.path.basename(p) for p in glob.glob(os.path.join(out_dir, "*.png")))
+    names = [n for n in FIGURES if n in names] + [n for n in names if n not in FIGURES]
+    if names:
         parts.append("<h2>Figures</h2>")
-        for path in figures:
-            name = html.escape(os.path.basename(path))
-            parts.append(f'<figure><img src="{name}" alt="{name}">'
-                         f"<figcaption>{name}</figcaption></figure>")
+        for name in names:
+            caption = html.escape(FIGURES.get(name, name))
+            parts.append(f'<figure><img src="{html.escape(name)}" alt="{caption}">'
+                         f"<figcaption>{caption} (<code>{html.escape(name)}</code>)</figcaption>"
+                         "</figure>")
     for name, heading in (("summary.csv", "Summary"),
                           ("comparisons.csv", "Probability of improvement")):
         path = os.path.join(out_dir, name)

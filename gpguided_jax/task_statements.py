@@ -16,6 +16,9 @@ gp_model plans with the task's statement of its reward and end, functions of one
   end_fn(next_obs) -> () bool                         whether the transition ends the episode
   end_margin(next_obs) -> ()                          its signed margin, > 0 where `end_fn` holds,
                                                       in units of the observation's scale
+                                                      (`from_gymnax` and `from_brax` take
+                                                      end_margin(next_obs, scale): the scale is
+                                                      placed when the task is made)
 
 `statement_problem` checks them by abstract evaluation (`jax.eval_shape`, nothing is computed) and
 says in one line what to change; `tasks.register` refuses a task with such a problem.

@@ -216,7 +216,7 @@ def test_the_readme_quick_start_of_the_paper_methods_runs_as_printed(tmp_path):
     """The second block, executed exactly as printed (compiled fast, as the other end-to-end
     tests: `conftest.fast_compile_env`)."""
     lines = _run_as_printed(_quick_start(1), tmp_path, fast_compile_env(), timeout=300)
-    assert len(lines) == 2, proc.stdout
+    assert len(lines) == 2, lines
     rewards = re.findall(r"-?\d+\.\d+", lines[0])
     assert lines[0].startswith("reward per step, first update:") and len(rewards) == 4, lines[0]
     m = re.fullmatch(r"(\d+) basis vectors; at x_0 = 0\.5: mean (-?[\d.]+) \(sin 0\.5 = 0\.479\), "
