@@ -809,6 +809,44 @@ def model_tuning_table(task: str) -> str:
 # with a gp_model study (its tuning record and held-out runs)
 MODEL_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
                "inverted-double-pendulum", "swingup")
+# The methods at a glance (README.md and the site's home page): per registered method, what its
+# GP models, what it is good for, and the command that runs it as tuned.
+METHODS_AT_A_GLANCE = {
+    "reinforce": ("nothing (Monte-Carlo returns, eq. 4)", "the baseline the GP methods are compared with",
+                  "paper"),
+    "gp_pg": ("Q(s, a): its mean replaces the returns in the gradient (eq. 9)",
+              "the paper's critic alone, fixed noise", "paper"),
+    "guided_variance": ("Q(s, a): its variance scales the exploratory noise (eq. 16–19)",
+                        "the paper's best on its pendulum", "paper"),
+    "guided_direction": ("Q(s, a): a Gibbs policy over candidate actions (eq. 20–22)",
+                         "exploring by the GP's value of actions", "paper"),
+    "gp_critic": ("Q(s, a): many steps on its expectation, in a KL trust region",
+                  "more improvement per episode", "pendulum-v1"),
+    "gp_model": ("the dynamics (and the reward, where the task states none)",
+                 "few environment steps on smooth tasks", "pendulum-v1"),
+}
+
+
+def methods_table() -> str:
+    """The methods at a glance: every method the library registers (`methods.names()`, those a
+    test registers left out), in the registry's order; a library method without its row in
+    `METHODS_AT_A_GLANCE` is an error."""
+    from gpguided_jax import methods
+
+    names = [n for n in methods.names()
+             if methods.get(n).update.__module__.startswith("gpguided_jax.")]
+    if set(names) != set(METHODS_AT_A_GLANCE):
+        raise KeyError(f"METHODS_AT_A_GLANCE lists {sorted(METHODS_AT_A_GLANCE)}, the registry "
+                       f"{sorted(names)}: give each method its row")
+    lines = ["| method | what its GP models | good for | the command that runs it |",
+             "|---|---|---|---|"]
+    for name in names:
+        models, good, preset = METHODS_AT_A_GLANCE[name]
+        lines.append(f"| `{name}` | {models} | {good} | "
+                     f"`gpguided reproduce --preset {preset} --methods {name}` |")
+    return "\n".join(lines)
+
+
 HEADLINE_TASKS = {"pendulum-v1": "Pendulum-v1", "mountaincar-continuous": "MountainCarContinuous-v0",
                   "inverted-pendulum": "brax inverted_pendulum",
                   "inverted-double-pendulum": "brax inverted_double_pendulum",
@@ -859,7 +897,7 @@ def headline_table() -> str:
         f"gp_model under its preset's use of the model's uncertainty ({choices}); the paper's "
         "best: the best of its methods and gp_critic by final return"
         + (" (_restart: its episodes restarted after an end)." if restart else "."),
-        _source(*(f"model/{t}/heldout_table.json" for t in HEADLINE_TASKS)))]
+        "Source: `docs/results/model/<task>/heldout_table.json`, one per task.")]
     return "\n".join(lines)
 
 TABLES = {
@@ -905,6 +943,7 @@ TABLES = {
     **{f"model_tuning_{t.replace('-', '_')}": (lambda t=t: model_tuning_table(t))
        for t in MODEL_TASKS},
     "headline": headline_table,
+    "methods": methods_table,
 }
 BLOCK = re.compile(r"(<!-- generated: (\w+) -->\n)(.*?)(<!-- end: \2 -->)", re.S)
 
