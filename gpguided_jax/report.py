@@ -34,6 +34,7 @@ th, td { border: 1px solid #d0d7de; padding: 0.25rem 0.5rem; text-align: left; w
 th { background: #f6f8fa; } td.num { text-align: right; font-variant-numeric: tabular-nums; }
 tr.differs td { background: #fff8c5; }
 table.config td { white-space: normal; max-width: 18rem; overflow-wrap: anywhere; }
+table.config td:first-child { white-space: nowrap; max-width: none; }  /* the field's name */
 figure { margin: 1rem 0; } figure img { max-width: 100%; border: 1px solid #d0d7de; }
 figcaption { color: #59636e; font-size: 0.9rem; }
 code { background: #f6f8fa; padding: 0.1rem 0.3rem; border-radius: 4px; }
