@@ -949,6 +949,7 @@ def headline_table() -> str:
         "Source: `docs/results/model/<task>/heldout_table.json`, one per task.")]
     return "\n".join(lines)
 
+
 TABLES = {
     "fig5": fig5_table,
     "improvement": improvement_table,
