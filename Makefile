@@ -3,7 +3,8 @@
 #   make test   the fast tests (make test-all: every test, as CI runs them)
 # make results regenerates the result files of the documentation's tables (docs/results/), make
 # figures the figures', and each study has its own target: make swingup, make standard, make
-# exploration and make model; make docs builds the documentation site into site/.
+# exploration and make model; make notebooks executes the notebooks into the site's pages
+# (docs/notebooks/); make docs builds the documentation site into site/.
 # Every target creates the virtual environment in .venv on first use from the pinned lock file.
 
 VENV ?= .venv
@@ -16,7 +17,7 @@ SEED_START ?= 1000
 CONSISTENCY_SEEDS := $(shell seq $(SEED_START) $$(($(SEED_START) + 9)))
 
 .PHONY: run results figures swingup standard exploration model demo test test-all lint bench docs \
-	clean-venv
+	notebooks clean-venv
 
 $(STAMP): pyproject.toml requirements.lock
 	python3 -m venv $(VENV)
@@ -137,6 +138,13 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(VENV)/bin/gpguided bench --out docs/results/bench.json
 	$(PY) experiments/docs_tables.py --write
+
+# The notebooks executed at full size, each written as a page of the site with its outputs
+# (docs/notebooks/<name>.md and its figures; experiments/render_notebooks.py). The pages are kept
+# in the repository, so that `make docs` only reads them; tests/test_notebooks.py checks that each
+# shows its notebook's current cells.
+notebooks: $(STAMP)
+	$(PY) experiments/render_notebooks.py
 
 # The documentation site (mkdocs.yml, docs/), warnings as errors, into site/.
 docs: $(STAMP)

@@ -866,6 +866,97 @@ MODEL_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
                "inverted-double-pendulum", "swingup")
 # with a planning study (experiments/planning_study.py: its ablation, search and held-out runs)
 PLANNING_TASKS = ("inverted-pendulum", "swingup", "pendulum-v1", "mountaincar-continuous")
+# The methods at a glance (README.md and the site's home page): per registered method, what its
+# GP models, what it is good for, and the command that runs it as tuned.
+METHODS_AT_A_GLANCE = {
+    "reinforce": ("nothing (Monte-Carlo returns, eq. 4)", "the baseline the GP methods are compared with",
+                  "paper"),
+    "gp_pg": ("Q(s, a): its mean replaces the returns in the gradient (eq. 9)",
+              "the paper's critic alone, fixed noise", "paper"),
+    "guided_variance": ("Q(s, a): its variance scales the exploratory noise (eq. 16–19)",
+                        "the paper's best on its pendulum", "paper"),
+    "guided_direction": ("Q(s, a): a Gibbs policy over candidate actions (eq. 20–22)",
+                         "exploring by the GP's value of actions", "paper"),
+    "gp_critic": ("Q(s, a): many steps on its expectation, in a KL trust region",
+                  "more improvement per episode", "pendulum-v1"),
+    "gp_model": ("the dynamics (and the reward, where the task states none)",
+                 "few environment steps on smooth tasks", "pendulum-v1"),
+}
+
+
+def methods_table() -> str:
+    """The methods at a glance: every method the library registers (`methods.names()`, those a
+    test registers left out), in the registry's order; a library method without its row in
+    `METHODS_AT_A_GLANCE` is an error."""
+    from gpguided_jax import methods
+
+    names = [n for n in methods.names()
+             if methods.get(n).update.__module__.startswith("gpguided_jax.")]
+    if set(names) != set(METHODS_AT_A_GLANCE):
+        raise KeyError(f"METHODS_AT_A_GLANCE lists {sorted(METHODS_AT_A_GLANCE)}, the registry "
+                       f"{sorted(names)}: give each method its row")
+    lines = ["| method | what its GP models | good for | the command that runs it |",
+             "|---|---|---|---|"]
+    for name in names:
+        models, good, preset = METHODS_AT_A_GLANCE[name]
+        lines.append(f"| `{name}` | {models} | {good} | "
+                     f"`gpguided reproduce --preset {preset} --methods {name}` |")
+    return "\n".join(lines)
+
+
+HEADLINE_TASKS = {"pendulum-v1": "Pendulum-v1", "mountaincar-continuous": "MountainCarContinuous-v0",
+                  "inverted-pendulum": "brax inverted_pendulum",
+                  "inverted-double-pendulum": "brax inverted_double_pendulum",
+                  "swingup": "the swing-up"}
+
+
+def headline_rows() -> list[dict]:
+    """Per task of `HEADLINE_TASKS`, from the gp_model study's held-out table
+    (model/<task>/heldout_table.json, which reads SAC's, PPO's and the paper's methods' runs from
+    the standard tasks' and the swing-up studies' files): the task's threshold and the rows of
+    gp_model under its tuned use of the uncertainty (model/<task>/tuning.json), the best of the
+    paper's methods and gp_critic, SAC and PPO."""
+    out = []
+    for task, label in HEADLINE_TASKS.items():
+        with open(os.path.join(RESULTS, "model", task, "heldout_table.json")) as f:
+            d = json.load(f)
+        with open(os.path.join(RESULTS, "model", task, "tuning.json")) as f:
+            choice = json.load(f)["chosen"]["model_exploration"]
+        rows = {r["method"]: r for r in d["rows"]}
+        out.append(dict(task=task, label=label, measure=d["measure"], threshold=d["threshold"],
+                        seeds=d["seeds"], choice=choice, gp_model=rows[f"gp_model ({choice})"],
+                        paper=rows[d["paper_best"]], sac=rows["sac"], ppo=rows["ppo"]))
+    return out
+
+
+def _headline_cell(r: dict) -> str:
+    return (f"{_steps(r['steps_to_threshold_median'])} of {_steps(r['env_steps'])}, "
+            f"{r['seeds_reaching']}/{r['seeds']}")
+
+
+def headline_table() -> str:
+    """The README's headline: per task, environment steps to its threshold and the seeds reaching
+    it, for gp_model, the paper's best method, SAC and PPO (`headline_rows`)."""
+    rows = headline_rows()
+    lines = ["| task | threshold | gp_model | the paper's best | SAC | PPO |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['label']} | {r['measure']} {r['threshold']:g} | "
+                     f"{_headline_cell(r['gp_model'])} | {r['paper']['method']}: "
+                     f"{_headline_cell(r['paper'])} | {_headline_cell(r['sac'])} | "
+                     f"{_headline_cell(r['ppo'])} |")
+    choices = ", ".join(f"{r['label']} {r['choice']}" for r in rows)
+    first = min(s for r in rows for s in r["seeds"])
+    restart = any(r["paper"]["method"].endswith("_restart") for r in rows)
+    lines += ["", _caption(
+        "Each cell: the median environment steps to the threshold over the seeds that reach it, "
+        f"of the steps the run took, and the seeds reaching it. Held-out seeds from {first}. "
+        f"gp_model under its preset's use of the model's uncertainty ({choices}); the paper's "
+        "best: the best of its methods and gp_critic by final return"
+        + (" (_restart: its episodes restarted after an end)." if restart else "."),
+        "Source: `docs/results/model/<task>/heldout_table.json`, one per task.")]
+    return "\n".join(lines)
+
 
 TABLES = {
     "fig5": fig5_table,
@@ -909,6 +1000,8 @@ TABLES = {
     **{f"model_{t.replace('-', '_')}": (lambda t=t: model_table(t)) for t in MODEL_TASKS},
     **{f"model_tuning_{t.replace('-', '_')}": (lambda t=t: model_tuning_table(t))
        for t in MODEL_TASKS},
+    "headline": headline_table,
+    "methods": methods_table,
     **{f"planning_ablation_{t.replace('-', '_')}": (lambda t=t: planning_ablation_table(t))
        for t in PLANNING_TASKS},
     **{f"planning_{t.replace('-', '_')}": (lambda t=t: planning_table(t)) for t in PLANNING_TASKS},

@@ -118,6 +118,7 @@ def _reproduce(args) -> int:
     runtime.set_compile_cache(args.compile_cache)
     from gpguided_jax import distributed, reproduce
 
+    _import_modules(args.imports)
     seeds = list(range(args.seed_start, args.seed_start + args.seeds))
     overrides = {}
     if args.env is not None:
@@ -167,8 +168,26 @@ def _reproduce(args) -> int:
     print(out["markdown"])
     for path in out["figures"]:
         print(f"wrote {path}")
-    print(f"wrote {args.out}/results.npz, summary.csv, comparisons.csv, config.json")
+    print(f"wrote {args.out}/results.npz, summary.csv, comparisons.csv, config.json, index.html")
     return 0
+
+
+def _import_modules(names: list[str] | None) -> None:
+    """`--import`: each module imported, the working directory first on the path (as `python -m`
+    has it); one line for a module that is not found or fails to import."""
+    import importlib
+
+    if not names:
+        return
+    if os.getcwd() not in sys.path:
+        sys.path.insert(0, os.getcwd())
+    for name in names:
+        try:
+            importlib.import_module(name)
+        except Exception as e:  # noqa: BLE001 (the user's module: any error, in one line)
+            first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+            raise SystemExit(f"gpguided reproduce: error: --import {name}: "
+                             f"{type(e).__name__}: {first}") from None
 
 
 def _parse_overrides(items: list[str] | None) -> dict:
@@ -369,6 +388,10 @@ def _add_task_options(rep) -> None:
                      help="the environment, replacing the preset's: pendulum, gymnax:<id> or "
                      "brax:<name> with one continuous action (e.g. gymnax:Pendulum-v1, "
                      "brax:inverted_double_pendulum); the preset's budget applies")
+    rep.add_argument("--import", dest="imports", nargs="+", default=None, metavar="MODULE",
+                     help="import these modules first (from the working directory or the path): "
+                     "a module that registers a task of its own (tasks.register) makes its name "
+                     "an --env")
     rep.add_argument("--horizon", type=float, default=None, metavar="SECONDS",
                      help="the discount as a horizon in seconds, gamma = exp(-dt / horizon) "
                      "(replaces the preset's discount)")

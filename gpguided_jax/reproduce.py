@@ -27,6 +27,8 @@ Output directory layout (every file is written atomically: to a temporary name, 
   comparisons.csv          probability of improvement (rliable) of each GP method over REINFORCE
                            and of each guided method over gp_pg, with bootstrap intervals
   fig5_reward.png, fig5_exploration.png
+  index.html               the run's report for a browser: the figures, the summary and
+                           comparison tables and the config (`report`)
 
 A checkpoint or kernels file that cannot be read is renamed to `<name>.corrupt` (the log says so)
 and that part of the run starts afresh.
@@ -45,7 +47,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh
 
-from gpguided_jax import checkpoints, distributed, plots, sharding, summaries
+from gpguided_jax import checkpoints, distributed, plots, report, sharding, summaries
 from gpguided_jax import config as config_lib
 from gpguided_jax import kernels as kernels_lib
 from gpguided_jax import methods as methods_lib
@@ -500,7 +502,8 @@ def stack_records(records: dict[str, dict]) -> dict[str, np.ndarray]:
 
 def _write_results(out_dir: str, cfgs: dict, seeds: list[int], records: dict,
                    out: dict) -> list[str]:
-    """results.npz, summary.csv, comparisons.csv (if any) and Fig. 5; returns the figures' paths."""
+    """results.npz, summary.csv, comparisons.csv (if any), Fig. 5 and index.html (`report`);
+    returns the figures' paths."""
     methods_run = list(records)
     arrays = stack_records(records)
     updates = arrays["mean_reward"].shape[-1]
@@ -516,4 +519,6 @@ def _write_results(out_dir: str, cfgs: dict, seeds: list[int], records: dict,
     summaries.write_csv(out["summary"], os.path.join(out_dir, "summary.csv"))
     if out["comparisons"]:
         summaries.write_csv(out["comparisons"], os.path.join(out_dir, "comparisons.csv"))
-    return plots.plot_fig5({"methods": methods_run, "env_steps": env_steps, **arrays}, out_dir)
+    figures = plots.plot_fig5({"methods": methods_run, "env_steps": env_steps, **arrays}, out_dir)
+    report.write_report(out_dir)  # after every file it shows
+    return figures

@@ -627,9 +627,16 @@ _REGISTERED: dict[str, Task] = {}
 
 def register(task: Task) -> Task:
     """Makes a `Task` written by hand trainable by name (`TrainConfig.env = task.name`): any JAX
-    environment with one continuous action, given as the module notes describe."""
+    environment with one continuous action, given as the module notes describe. A statement of
+    its reward or end that gp_model could not plan with is refused in one line
+    (`task_statements.statement_problem`)."""
+    from gpguided_jax.task_statements import statement_problem  # it builds on this module
+
     if task.name in SUPPORTED or task.name.partition(":")[0] in ("gymnax", "brax"):
         raise TaskError(f"the name {task.name!r} is taken by a built-in environment")
+    problem = statement_problem(task)
+    if problem:
+        raise TaskError(problem)
     _REGISTERED[task.name] = task
     make_task.cache_clear()
     return task

@@ -9,6 +9,7 @@ not here.)
 import csv
 import glob
 import importlib.util
+import math
 import os
 import re
 import subprocess
@@ -70,7 +71,7 @@ def test_every_generator_has_a_block():
     assert used == set(docs_tables.TABLES), sorted(used ^ set(docs_tables.TABLES))
 
 
-@pytest.mark.parametrize("path", [README, os.path.join(ROOT, "docs", "results.md")], ids=_rel)
+@pytest.mark.parametrize("path", [os.path.join(ROOT, "docs", "results.md")], ids=_rel)
 def test_fig5_numbers_equal_the_summary_file_independently(path):
     """Parse the Fig. 5 rows back into numbers and compare them with summary.csv at the precision
     shown (a check that does not reuse the table generator's formatting code)."""
@@ -173,27 +174,49 @@ def test_the_exploration_runs_steps_per_seed_agree_with_their_summaries(task):
                 float(run["summary"]["steps_to_threshold_median"]), rel=1e-12), key
 
 
-def _quick_start():
-    text = _read(README)
-    section = text.split("## Quick start", 1)[1]
-    match = re.search(r"```python\n(.*?)```", section, re.S)
-    assert match, "no ```python block after the Quick start heading"
-    return match.group(1)
+def _quick_start(index):
+    """The `index`-th ```python block of the README's Quick start section."""
+    section = _read(README).split("## Quick start", 1)[1].split("\n## ", 1)[0]
+    found = re.findall(r"```python\n(.*?)```", section, re.S)
+    assert len(found) == 2, "the Quick start has two ```python blocks"
+    return found[index]
+
+
+def _run_as_printed(code, tmp_path, env, timeout):
+    """`code` in a fresh process with the repository on the path, JAX's 64-bit mode off (the
+    script's own choice); returns its stdout's lines after checking that it exits 0."""
+    script = tmp_path / "quick_start.py"
+    script.write_text(code)
+    env = dict(env, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.pop("JAX_ENABLE_X64", None)
+    proc = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=timeout)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc.stdout.splitlines()
 
 
 @pytest.mark.cli
-def test_the_readme_quick_start_runs_as_printed(tmp_path):
-    """Executed exactly as printed, in a fresh process with the repository on the path (compiled
-    fast, as the other end-to-end tests: `conftest.fast_compile_env`)."""
-    script = tmp_path / "quick_start.py"
-    script.write_text(_quick_start())
-    env = fast_compile_env(PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    env.pop("JAX_ENABLE_X64", None)
-    proc = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True,
-                          text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    lines = proc.stdout.splitlines()
-    assert len(lines) == 2, proc.stdout
+def test_the_readme_quick_start_learns_pendulum_v1_as_printed(tmp_path):
+    """gp_model on Pendulum-v1, executed exactly as printed, compiled as a user's run is (at XLA's
+    level 0 gp_model's update runs many times slower, and its numbers differ): one line per
+    update, the environment steps in steps of one 200-step episode, the initial controller below
+    the threshold of -200 and a later one at or above it."""
+    lines = _run_as_printed(_quick_start(0), tmp_path, dict(os.environ), timeout=600)
+    parsed = [re.fullmatch(r"after +(\d+) environment steps: evaluation return +(-?\d+\.\d)", line)
+              for line in lines]
+    assert len(lines) == 6 and all(parsed), lines
+    steps = [int(m.group(1)) for m in parsed]
+    returns = [float(m.group(2)) for m in parsed]
+    assert steps == [200 * u for u in range(6)], steps
+    assert returns[0] < -200.0 and max(returns[1:]) >= -200.0, returns
+
+
+@pytest.mark.cli
+def test_the_readme_quick_start_of_the_paper_methods_runs_as_printed(tmp_path):
+    """The second block, executed exactly as printed (compiled fast, as the other end-to-end
+    tests: `conftest.fast_compile_env`)."""
+    lines = _run_as_printed(_quick_start(1), tmp_path, fast_compile_env(), timeout=300)
+    assert len(lines) == 2, lines
     rewards = re.findall(r"-?\d+\.\d+", lines[0])
     assert lines[0].startswith("reward per step, first update:") and len(rewards) == 4, lines[0]
     m = re.fullmatch(r"(\d+) basis vectors; at x_0 = 0\.5: mean (-?[\d.]+) \(sin 0\.5 = 0\.479\), "
@@ -222,8 +245,96 @@ def test_every_relative_link_and_image_points_to_a_file(path):
     assert not missing, f"{_rel(path)}: {missing}"
 
 
-def test_the_readme_is_short():
-    assert len(_read(README).splitlines()) <= 300
+def test_the_readme_is_short_and_narrow():
+    lines = _read(README).splitlines()
+    assert len(lines) <= 300
+    wide = [i + 1 for i, line in enumerate(lines) if len(line) > 200]
+    assert not wide, f"README.md lines over 200 characters: {wide}"
+
+
+def _nav_pages(nav):
+    """The Markdown files of mkdocs.yml's nav, in order (sections flattened)."""
+    for entry in nav:
+        for value in (entry.values() if isinstance(entry, dict) else [entry]):
+            if isinstance(value, list):
+                yield from _nav_pages(value)
+            else:
+                yield value
+
+
+def _linked_pages(text, prefix=""):
+    """The documentation pages (docs/*.md and below) that `text` links to, as paths relative to
+    docs/; `prefix` is the links' path to docs/ ('docs/' from the README)."""
+    text = _FENCE.sub("", text)
+    pages = set()
+    for target in _LINK.findall(text):
+        file = target.split("#", 1)[0]
+        if file.endswith(".md") and file.startswith(prefix) and not re.match(r"[a-z]+:", file):
+            pages.add(file[len(prefix):])
+    return pages
+
+
+def test_the_readme_the_home_page_and_the_nav_list_the_same_pages():
+    """Every page of the site is in mkdocs.yml's nav; the README links to each of them (the home
+    page among them), and the home page to each of the others."""
+    import yaml
+
+    with open(os.path.join(ROOT, "mkdocs.yml")) as f:
+        # mkdocs.yml's own tags (none today) would need mkdocs' loader; the nav is plain YAML
+        nav = list(_nav_pages(yaml.safe_load(f)["nav"]))
+    assert len(nav) == len(set(nav)), nav
+    on_disk = {os.path.relpath(p, os.path.join(ROOT, "docs"))
+               for p in glob.glob(os.path.join(ROOT, "docs", "*.md"))
+               + glob.glob(os.path.join(ROOT, "docs", "notebooks", "*.md"))}
+    assert set(nav) == on_disk, sorted(set(nav) ^ on_disk)
+    readme = _linked_pages(_read(README), "docs/")
+    home = _linked_pages(_read(os.path.join(ROOT, "docs", "index.md")))
+    assert readme == set(nav), sorted(readme ^ set(nav))
+    assert home == set(nav) - {"index.md"}, sorted(home ^ (set(nav) - {"index.md"}))
+
+
+def test_the_headline_table_equals_the_studies_files_independently():
+    """The README's headline, parsed back: per task, gp_model's cell is its study's held-out row
+    under the use of the uncertainty its preset runs (`model_based.method.PRESETS`); SAC's, PPO's
+    and the paper's best method's cells give the steps to the threshold and the seeds reaching it
+    that the standard tasks' and the swing-up studies' own files give (medians over the seeds that
+    reach it)."""
+    import json
+    import statistics
+
+    from gpguided_jax.model_based.method import PRESETS
+
+    body = docs_tables.blocks(_read(README))["headline"]
+    rows = [[c.strip() for c in line.split("|")[1:-1]] for line in body.splitlines()
+            if line.startswith("| ") and not line.startswith("| task")]
+    assert [r[0] for r in rows] == list(docs_tables.HEADLINE_TASKS.values())
+    base = os.path.join(ROOT, "docs", "results")
+
+    def cell(steps, seeds):
+        reached = [s for s in steps if s is not None and math.isfinite(s)]
+        median = f"{statistics.median(reached) / 1000:.1f}k" if reached else "–"
+        return median, f"{len(reached)}/{seeds}"
+
+    def shown(text):
+        m = re.fullmatch(r"(?:\w+: )?(\S+) of \S+, (\d+/\d+)", text)
+        assert m, text
+        return m.group(1), m.group(2)
+
+    for task, row in zip(docs_tables.HEADLINE_TASKS, rows):
+        with open(os.path.join(base, "model", task, "heldout_table.json")) as f:
+            model = {r["method"]: r for r in json.load(f)["rows"]}
+        mine = model[f"gp_model ({PRESETS[task]['model_exploration']})"]
+        assert shown(row[2]) == cell(mine["steps_to_threshold"], mine["seeds"]), (task, row[2])
+        paper = row[3].split(":", 1)[0]
+        if task == "swingup":
+            with open(os.path.join(base, "swingup", "heldout_table.json")) as f:
+                others = {r["method"]: (r["steps_to_90"], r["seeds"]) for r in json.load(f)}
+        else:
+            with open(os.path.join(base, "standard", task, "heldout_table.json")) as f:
+                others = {r["method"]: (r["steps_to_threshold"], r["seeds"])
+                          for r in json.load(f)["rows"]}
+        for name, text in ((paper, row[3]), ("sac", row[4]), ("ppo", row[5])):
+            assert shown(text) == cell(*others[name]), (task, name, text)
 
 
 def test_no_file_speaks_of_how_the_work_was_organised():

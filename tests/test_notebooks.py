@@ -11,10 +11,16 @@ At the reduced size the notebooks spend most of their time compiling, so the ker
 backend at optimisation level 0 (`conftest.fast_compile_env`; it compiles much faster, and the
 tiny runs do not notice the slower code). This is for the test only: the notebooks themselves run with
 JAX's defaults.
+
+The documentation site shows each notebook executed at full size, as a page that
+experiments/render_notebooks.py writes (`make notebooks`) and the repository keeps
+(docs/notebooks/); `test_the_site_shows_each_notebook_as_it_is` checks that each page shows its
+notebook's current cells, without executing anything.
 """
 
 import json
 import pathlib
+import re
 import sys
 
 import pytest
@@ -58,7 +64,39 @@ def test_notebooks_exist():
         "02_exploration_schemes.py",
         "03_autodiff_verification.py",
         "04_sweeps.py",
+        "05_model_based.py",
     ]
+
+
+def _renderer():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "render_notebooks", NOTEBOOK_DIR.parent / "experiments" / "render_notebooks.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+def test_the_site_shows_each_notebook_as_it_is(path):
+    """docs/notebooks/<name>.md, written by experiments/render_notebooks.py with the notebook's
+    outputs, shows the notebook's current cells (its outputs taken out, it is the page of the
+    cells alone); every figure it links to is a file, and it shows at least one output."""
+    render = _renderer()
+    page_path = render.PAGES / f"{path.stem}.md"
+    assert page_path.exists(), f"no page for {path.name}: run python experiments/render_notebooks.py"
+    page = page_path.read_text()
+    cells = render.markdown(path, render.read(path))
+    assert render.strip_outputs(page) == render.strip_outputs(cells), (
+        f"{page_path.name} shows an older {path.name}: run python experiments/render_notebooks.py "
+        f"{path.stem}")
+    figures = re.findall(r"!\[output\]\(([^)]+)\)", page)
+    assert all((page_path.parent / f).exists() for f in figures), figures
+    assert figures or "```text" in page
+    # no figure left over from an earlier rendering
+    on_disk = {p.name for p in (render.PAGES / f"{path.stem}_files").glob("*")}
+    assert on_disk == {pathlib.PurePosixPath(f).name for f in figures}
 
 
 @pytest.mark.notebooks
