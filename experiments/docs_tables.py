@@ -915,7 +915,7 @@ def headline_rows() -> list[dict]:
     (model/<task>/heldout_table.json, which reads SAC's, PPO's and the paper's methods' runs from
     the standard tasks' and the swing-up studies' files): the task's threshold and the rows of
     gp_model under its tuned use of the uncertainty (model/<task>/tuning.json), the best of the
-    paper's methods and gp_critic, SAC and PPO."""
+    paper's methods, SAC and PPO."""
     out = []
     for task, label in HEADLINE_TASKS.items():
         with open(os.path.join(RESULTS, "model", task, "heldout_table.json")) as f:
@@ -952,7 +952,7 @@ def headline_table() -> str:
         "Each cell: the median environment steps to the threshold over the seeds that reach it, "
         f"of the steps the run took, and the seeds reaching it. Held-out seeds from {first}. "
         f"gp_model under its preset's use of the model's uncertainty ({choices}); the paper's "
-        "best: the best of its methods and gp_critic by final return"
+        "best: the best of its four methods by final return"
         + (" (_restart: its episodes restarted after an end)." if restart else "."),
         "Source: `docs/results/model/<task>/heldout_table.json`, one per task.")]
     return "\n".join(lines)

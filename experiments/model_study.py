@@ -109,9 +109,9 @@ GRIDS = {"pendulum-v1": [("model_exploration", list(USES)),
 MEASURES = {"swingup": ("eval_success_rate", 0.9, "success rate")}
 STANDARD = os.path.join(ROOT, "docs", "results", "standard")
 # brax's baselines, SAC's row first (the aim's comparison), and the standard-tasks study's runs
-# of the paper's methods and gp_critic (experiments/standard_tasks.py), restarted or not
+# of the paper's methods (experiments/standard_tasks.py), restarted or not
 BESIDE = tuple(reversed(baselines.NAMES))
-PAPER = tuple(f"{m}{end}" for end in ("", "_restart") for m in (*config_lib.PAPER_METHODS, "gp_critic"))
+PAPER = tuple(f"{m}{end}" for end in ("", "_restart") for m in config_lib.PAPER_METHODS)
 
 
 def planned(task: str) -> dict:
