@@ -134,3 +134,65 @@ def test_the_planners_first_action_is_the_lqr_action_within_their_sampling_error
     first, spread = np.asarray(planned.actions[:, 0]), np.asarray(planned.std[:, 0])
     assert np.all(spread < 0.05 * abs(k_inf)), spread
     assert np.all(np.abs(first - k_inf) <= 3 * spread), (first - k_inf, spread)
+
+
+# ------------------------------------------------------------------------------------------------
+# The policy's memory, the settings.
+# ------------------------------------------------------------------------------------------------
+
+
+def _counting_policy(policy):
+    """`policy` whose memory counts its decisions and whose action is the count."""
+    def act(key, theta, state, ctx, m):
+        del key, ctx
+        action, aux = m.astype(state.dtype), policy.sample(jax.random.key(0), theta, state,
+                                                           None)[1]
+        return action, aux, jax.tree_util.tree_map(jnp.zeros_like, theta), jnp.ones(()), m + 1
+
+    return policy._replace(act=act, memory=lambda theta, ctx: jnp.zeros((), jnp.int32))
+
+
+@pytest.mark.parametrize("hold_time", [0.0, 0.03])
+def test_a_policy_s_memory_goes_from_one_decision_to_the_next(hold_time):
+    """The roll-outs carry a policy's memory (`Policy.memory`) through an episode: a policy whose
+    memory counts its decisions acts 0, 1, 2, ... (each held `prog.hold` steps)."""
+    cfg = C.preset("tiny", method="gp_mpc", hold_time=hold_time)
+    prog = rollouts.make_program(cfg)
+    policy = _counting_policy(prog.behaviour)
+    theta = T.initial_theta(prog, cfg)
+    ep = jax.jit(lambda k: rollouts.rollout(prog, k, theta, None, policy, cfg))(jax.random.key(0))
+    expected = np.repeat(np.arange(cfg.episode_length), prog.hold)[:cfg.episode_length]
+    assert prog.policy.memory is not None
+    assert prog.hold == max(1, round(hold_time / C.control_interval(cfg)))
+    assert (prog.hold > 1) == (hold_time > 0)
+    np.testing.assert_array_equal(np.asarray(ep.actions), expected)
+
+
+def test_gp_mpc_s_settings_extend_gp_model_s_by_their_flat_names():
+    """gp_mpc's settings are gp_model's (by their `model_` names) and the planner's (`mpc_`):
+    their defaults, overrides, checks and static/traced split; gp_model's config ignores the
+    planner's quietly; `planner_steps` converts the horizon's seconds to decisions."""
+    cfg = C.make_config(method="gp_mpc", mpc_samples=16, mpc_horizon=0.3, model_horizon=1.0,
+                        mpc_temperature=0.2)
+    own = cfg.settings
+    assert isinstance(own, P.PlannerSettings) and isinstance(own, MB.ModelSettings)
+    assert (own.samples, own.plan_horizon, own.horizon, own.elites) == (16, 0.3, 1.0, 8)
+    assert cfg.static_dict()["mpc_samples"] == 16 and cfg.to_json_dict()["mpc_temperature"] == 0.2
+    assert methods.setting_owners()["model_horizon"] == ("gp_model", "gp_mpc")
+    assert methods.setting_owners()["mpc_samples"] == ("gp_mpc",)
+    traced = jax.tree_util.tree_leaves(own)
+    assert len(traced) == len(P.PlannerSettings.TRACED) == 5
+    assert type(C.make_config(method="gp_model", mpc_samples=16).settings) is MB.ModelSettings
+    prog = rollouts.make_program(cfg)
+    dt = C.control_interval(cfg)
+    assert MB.planner_steps(prog, cfg) == round(0.3 / dt)
+    assert prog.policy.name == P.POLICY and prog.policy.memory is not None
+    for bad, match in ((dict(mpc_elites=17), "mpc_elites: must be at most mpc_samples"),
+                       (dict(mpc_planner="random"), "mpc_planner: unknown planner"),
+                       (dict(mpc_horizon=0.0), "mpc_horizon: must be > 0"),
+                       (dict(mpc_temperature=-1.0), "mpc_temperature: must be > 0"),
+                       (dict(model_particles=0), "model_particles: must be a positive")):
+        with pytest.raises(ValueError, match=match):
+            C.make_config(method="gp_mpc", mpc_samples=16, **bad)
+    with pytest.raises(ValueError, match="gp_mpc takes 'white' only"):
+        C.make_config(method="gp_mpc", exploration="ou")

@@ -158,6 +158,12 @@ def mean_step(task, model: SparseModel, target_mean, obs, action):
     return next_of(task, obs, out[:task.obs_dim]), out
 
 
+def gp_mean_step(prog, ctx, obs, action):
+    """The planner's model step (`make_policy`'s default): the GP the last update built, its mean
+    (`mean_step` with the context's model)."""
+    return mean_step(prog.task, ctx.model, ctx.target_mean, obs, action)
+
+
 def _end_probability(task, nxt, end_softness):
     """gp_model's smoothed end (`rollout.simulate`): sigmoid(margin / softness), or the hard end."""
     if task.end_margin is not None:
@@ -165,34 +171,33 @@ def _end_probability(task, nxt, end_softness):
     return task.end_fn(nxt).astype(nxt.dtype)
 
 
-def sequence_return(prog, objective: objectives.Objective, model: SparseModel, target_mean, obs,
-                    actions, end_softness):
-    """The return of the (T,) decisions `actions` from `obs` through the model's mean: the
-    objective's rewards summed undiscounted, each weighed by the probability of being alive (a
-    task with an end; `rollout.simulate`'s rule)."""
+def sequence_return(prog, objective: objectives.Objective, step: Callable, obs, actions,
+                    end_softness):
+    """The return of the (T,) decisions `actions` from `obs` through the model `step(obs, action)
+    -> (next_obs, outputs)`: the objective's rewards summed undiscounted, each weighed by the
+    probability of being alive (a task with an end; `rollout.simulate`'s rule)."""
     task = prog.task
 
-    def step(carry, a):
+    def one(carry, a):
         obs, alive = carry
-        nxt, out = mean_step(task, model, target_mean, obs, a)
+        nxt, out = step(obs, a)
         if task.end_fn is None:
             return (nxt, alive), objective.reward(task, prog.hold, obs, a, nxt, None, out)
         p_end = _end_probability(task, nxt, end_softness)
         r = objective.reward(task, prog.hold, obs, a, nxt, p_end, out)
         return (nxt, alive * (1.0 - p_end)), alive * r
 
-    _, rewards = jax.lax.scan(step, (obs, jnp.ones((), obs.dtype)), actions)
+    _, rewards = jax.lax.scan(one, (obs, jnp.ones((), obs.dtype)), actions)
     return jnp.sum(rewards)
 
 
-def controller_actions(prog, model: SparseModel, target_mean, obs, controller_params,
-                       num_steps: int):
-    """(num_steps,) the controller's actions along its own roll-out through the model's mean."""
-    def step(obs, _):
+def controller_actions(prog, step: Callable, obs, controller_params, num_steps: int):
+    """(num_steps,) the controller's actions along its own roll-out through the model `step`."""
+    def one(obs, _):
         a = prog.controller.apply(controller_params, obs)
-        return mean_step(prog.task, model, target_mean, obs, a)[0], a
+        return step(obs, a)[0], a
 
-    return jax.lax.scan(step, obs, None, length=num_steps)[1]
+    return jax.lax.scan(one, obs, None, length=num_steps)[1]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -291,21 +296,23 @@ def context(prog, cfg, state) -> PlannerContext:
                           own.end_softness)
 
 
-def plan(prog, key, controller_params, obs, ctx: PlannerContext, memory: PlanMemory) -> Planned:
+def plan(prog, key, controller_params, obs, ctx: PlannerContext, memory: PlanMemory,
+         model_step: Callable = gp_mean_step) -> Planned:
     """One decision's plan from `obs` (module notes): the sequence optimiser of the settings,
-    warm-started by the controller's actions and the previous plan shifted by one decision."""
+    warm-started by the controller's actions and the previous plan shifted by one decision,
+    through `model_step(prog, ctx, obs, action) -> (next_obs, outputs)`."""
     own, task = prog.config.settings, prog.task
     objective = objectives.for_task(task, own.reward)
     num_steps = memory.plan.shape[0]
-    ctrl = controller_actions(prog, ctx.model, ctx.target_mean, obs, controller_params, num_steps)
+    step = lambda o, a: model_step(prog, ctx, o, a)  # noqa: E731
+    ctrl = controller_actions(prog, step, obs, controller_params, num_steps)
     shifted = jnp.concatenate([memory.plan[1:], memory.plan[-1:]])
     mean = jnp.where(memory.started, shifted, ctrl)
     u_max = jnp.asarray(task.max_action, obs.dtype)
     std = jnp.full((num_steps,), ctx.init_std * u_max, obs.dtype)
 
     def returns(actions):
-        return sequence_return(prog, objective, ctx.model, ctx.target_mean, obs, actions,
-                               ctx.end_softness)
+        return sequence_return(prog, objective, step, obs, actions, ctx.end_softness)
 
     return SEQUENCE_OPTIMISERS[own.planner].run(
         key, returns, mean, std, jnp.stack([ctrl, shifted]), samples=own.samples,
@@ -313,10 +320,12 @@ def plan(prog, key, controller_params, obs, ctx: PlannerContext, memory: PlanMem
         high=u_max)
 
 
-def make_policy(prog) -> policies.Policy:
+def make_policy(prog, model_step: Callable = gp_mean_step) -> policies.Policy:
     """The planner as a roll-out policy of `prog` (`policies.register`): its action is the plan's
-    first plus N(0, exp(log_std)^2) noise (the controller's action before the model has data);
-    its score is 0 (gp_mpc's update reads none) and its density is not defined."""
+    first plus N(0, exp(log_std)^2) noise (the controller's action before the model has data,
+    `ctx.ready`); its score is 0 (gp_mpc's update reads none) and its density is not defined.
+    `model_step(prog, ctx, obs, action) -> (next_obs, outputs)`: the model it plans through
+    (gp_mpc's: the GP's mean, `gp_mean_step`; a test's: the true dynamics)."""
     controller = prog.controller
     num_steps = planner_steps(prog, prog.config)
 
@@ -328,7 +337,7 @@ def make_policy(prog) -> policies.Policy:
     def act(key, theta, state, ctx, mem):
         chex.assert_rank(state, 1)
         key_plan, key_noise = jax.random.split(key)
-        planned = plan(prog, key_plan, theta.controller, state, ctx, mem)
+        planned = plan(prog, key_plan, theta.controller, state, ctx, mem, model_step)
         mean_action = jnp.where(ctx.ready, planned.actions[0],
                                 controller.apply(theta.controller, state))
         std = jnp.exp(theta.log_std)
