@@ -181,7 +181,7 @@ def test_gp_mpc_s_settings_extend_gp_model_s_by_their_flat_names():
     assert methods.setting_owners()["model_horizon"] == ("gp_model", "gp_mpc")
     assert methods.setting_owners()["mpc_samples"] == ("gp_mpc",)
     traced = jax.tree_util.tree_leaves(own)
-    assert len(traced) == len(P.PlannerSettings.TRACED) == 5
+    assert len(traced) == len(P.PlannerSettings.TRACED) == 5  # gp_model's 3, the planner's 2
     assert type(C.make_config(method="gp_model", mpc_samples=16).settings) is MB.ModelSettings
     prog = rollouts.make_program(cfg)
     dt = C.control_interval(cfg)
@@ -196,3 +196,53 @@ def test_gp_mpc_s_settings_extend_gp_model_s_by_their_flat_names():
             C.make_config(method="gp_mpc", mpc_samples=16, **bad)
     with pytest.raises(ValueError, match="gp_mpc takes 'white' only"):
         C.make_config(method="gp_mpc", exploration="ou")
+
+
+# ------------------------------------------------------------------------------------------------
+# End to end.
+# ------------------------------------------------------------------------------------------------
+
+TINY = dict(num_updates=3, model_inducing=8, model_steps=2, model_particles=2,
+            model_horizon=0.05, model_fit_steps=5, mpc_samples=8, mpc_elites=2,
+            mpc_iterations=2, mpc_horizon=0.05)
+
+
+@pytest.mark.training
+def test_gp_mpc_trains_end_to_end_through_the_registry_and_the_command_line(tmp_path):
+    """The tiny preset's gp_mpc, 2 seeds under jit and vmap, CEM and MPPI: finite records, the
+    model's data growing by the update's decisions (it takes data in once per update) and its
+    episodes acting otherwise than gp_model's from the second update on (the first acts with the
+    controller and the same draws as gp_model's: the same records, to rounding). Then `gpguided
+    reproduce --methods gp_mpc` with the planner's settings given by --set."""
+    from gpguided_jax import cli
+
+    keys = jax.random.split(jax.random.key(0), 2)
+    runs = {}
+    for name, extra in (("gp_model", {}), ("cem", {}), ("mppi", dict(mpc_planner="mppi"))):
+        cfg = C.preset("tiny", method="gp_model" if name == "gp_model" else "gp_mpc",
+                       **TINY, **extra)
+        runs[name] = jax.jit(jax.vmap(T.make_train(cfg)))(keys)[1]
+    decisions = cfg.episodes_per_update * cfg.episode_length
+    for name in ("cem", "mppi"):
+        rec = runs[name]
+        for f in rec._fields:
+            assert np.all(np.isfinite(np.asarray(getattr(rec, f)))), (name, f)
+        np.testing.assert_array_equal(np.asarray(rec.model_data),
+                                      np.tile(decisions * np.arange(1, 4), (2, 1)))
+        for f in ("mean_return", "model_error", "model_return"):  # compiled apart: to rounding
+            np.testing.assert_allclose(getattr(rec, f)[:, 0], getattr(runs["gp_model"], f)[:, 0],
+                                       rtol=1e-9)
+        assert np.all(rec.mean_return[:, 1:] != runs["gp_model"].mean_return[:, 1:])
+
+    out = tmp_path / "cli"
+    sets = [f"{k}={v}" for k, v in TINY.items() if k != "num_updates"]
+    assert cli.main(["reproduce", "--preset", "tiny", "--seeds", "1", "--methods", "gp_mpc",
+                     "--out", str(out), "--set", "num_updates=2", *sets]) == 0
+    import json
+
+    with open(out / "config.json") as f:
+        run = json.load(f)["methods"]["gp_mpc"]
+    assert run["mpc_samples"] == 8 and run["mpc_horizon"] == 0.05 and run["model_inducing"] == 8
+    with np.load(out / "results.npz") as f:
+        assert list(f["methods"]) == ["gp_mpc"]
+        assert np.all(np.isfinite(f["mean_return"])) and np.all(np.isfinite(f["model_error"]))

@@ -48,7 +48,7 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from gpguided_jax import _random, config, methods, policies
+from gpguided_jax import _random, config, exploration, methods, policies
 from gpguided_jax import settings as settings_lib
 from gpguided_jax.model_based import objectives
 from gpguided_jax.model_based.actor import LEARNT_CONTROLLER, Actor
@@ -76,9 +76,13 @@ class Planned(NamedTuple):
     std: jax.Array
 
 
-def _candidates(key, mean, std, warm, samples: int, low, high):
-    """(samples + W, T): Gaussian draws about `mean`, clipped to [low, high], then `warm`."""
+def _candidates(key, mean, std, warm, samples: int, low, high, colour):
+    """(samples + W, T): Gaussian draws about `mean` (standard normals coloured along the
+    sequence by the (T, T) Cholesky factor `colour` of their correlation, or white for None),
+    clipped to [low, high], then `warm`."""
     eps = _random.normal(key, (samples,) + mean.shape, mean.dtype)
+    if colour is not None:
+        eps = eps @ jnp.asarray(colour, mean.dtype).T
     return jnp.concatenate([jnp.clip(mean + std * eps, low, high), warm], axis=0)
 
 
@@ -89,16 +93,16 @@ def _scores(returns, candidates):
 
 
 def cem(key, returns: Callable, mean, std, warm, *, samples: int, iterations: int, elites: int,
-        low, high) -> Planned:
+        low, high, colour=None) -> Planned:
     """The cross-entropy method on `returns(u) -> ()` over (T,) sequences u: each of `iterations`
-    iterations draws `samples` sequences from N(mean, diag std^2) (clipped to [low, high]), adds
-    the (W, T) `warm` sequences, and refits mean and std to the `elites` with the highest
-    returns. Returns the last mean and std."""
+    iterations draws `samples` sequences from N(mean, diag std^2) (coloured by `colour`, iCEM's
+    correlated draws; clipped to [low, high]), adds the (W, T) `warm` sequences, and refits mean
+    and std to the `elites` with the highest returns. Returns the last mean and std."""
     chex.assert_rank([mean, std, warm], [1, 1, 2])
 
     def iteration(carry, k):
         mean, std = carry
-        cand = _candidates(k, mean, std, warm, samples, low, high)
+        cand = _candidates(k, mean, std, warm, samples, low, high, colour)
         _, best = jax.lax.top_k(_scores(returns, cand), elites)
         chosen = cand[best]
         return (jnp.mean(chosen, axis=0), jnp.std(chosen, axis=0)), None
@@ -108,11 +112,12 @@ def cem(key, returns: Callable, mean, std, warm, *, samples: int, iterations: in
 
 
 def mppi(key, returns: Callable, mean, std, warm, *, samples: int, iterations: int, temperature,
-         low, high) -> Planned:
+         low, high, colour=None) -> Planned:
     """MPPI's update (Williams et al. 2017) on `returns(u) -> ()` over (T,) sequences u: each of
-    `iterations` iterations draws `samples` sequences from N(mean, diag std^2) (clipped to
-    [low, high]), adds the (W, T) `warm` sequences, and moves the mean to their average weighed
-    by exp(R / temperature). The std is fixed. Returns the last mean and the std.
+    `iterations` iterations draws `samples` sequences from N(mean, diag std^2) (coloured by
+    `colour`; clipped to [low, high]), adds the (W, T) `warm` sequences, and moves the mean to
+    their average weighed by exp(R / temperature). The std is fixed. Returns the last mean and
+    the std.
 
     Without clipping or warm sequences, on R(u) = -(u - u*)^T H (u - u*) the update's expectation
     over infinitely many samples is u* + (I + 2 std^2 H / temperature)^-1 (mean - u*) (the product
@@ -120,7 +125,7 @@ def mppi(key, returns: Callable, mean, std, warm, *, samples: int, iterations: i
     chex.assert_rank([mean, std, warm], [1, 1, 2])
 
     def iteration(mean, k):
-        cand = _candidates(k, mean, std, warm, samples, low, high)
+        cand = _candidates(k, mean, std, warm, samples, low, high, colour)
         w = jax.nn.softmax(_scores(returns, cand) / temperature)
         return w @ cand, None
 
@@ -134,7 +139,7 @@ class SequenceOptimiser(NamedTuple):
     Attributes:
       name: its name.
       run: `run(key, returns, mean, std, warm, *, samples, iterations, elites, temperature, low,
-        high) -> Planned` (`cem`'s and `mppi`'s arguments; each ignores the other's).
+        high, colour) -> Planned` (`cem`'s and `mppi`'s arguments; each ignores the other's).
     """
 
     name: str
@@ -206,7 +211,8 @@ def controller_actions(prog, step: Callable, obs, controller_params, num_steps: 
 
 
 @settings_lib.declare(
-    static=ModelSettings.STATIC + ("samples", "iterations", "elites", "plan_horizon", "planner"),
+    static=ModelSettings.STATIC + ("samples", "iterations", "elites", "plan_horizon", "planner",
+                                   "noise_exponent"),
     prefix="mpc_",
     aliases={**{flat: f for f, flat in ModelSettings.FLAT.items()}, "mpc_horizon": "plan_horizon"})
 class PlannerSettings(ModelSettings):
@@ -220,6 +226,9 @@ class PlannerSettings(ModelSettings):
       elites: CEM's elites (at most `samples`).
       plan_horizon: the planning horizon, seconds (`planner_steps` decisions).
       planner: the sequence optimiser (`SEQUENCE_OPTIMISERS`: 'cem', 'mppi').
+      noise_exponent: beta of the draws' power spectrum along the sequence, S(f) ~ f^-beta
+        (`exploration.make_noise`'s 'coloured'; iCEM, Pinneri et al. 2020): 0 white, 2 red,
+        smoother sequences.
 
     Traced:
       temperature: MPPI's lambda, in units of the return.
@@ -232,6 +241,7 @@ class PlannerSettings(ModelSettings):
     elites: int = 8
     plan_horizon: float = 0.5
     planner: str = "cem"
+    noise_exponent: float = 0.0
     temperature: Any = 1.0
     init_std: Any = 0.5
 
@@ -246,6 +256,8 @@ class PlannerSettings(ModelSettings):
             settings_lib.fail(flat["elites"], f"must be at most {flat['samples']} "
                               f"({self.samples}), got {self.elites}")
         settings_lib.seconds(flat["plan_horizon"], self.plan_horizon)
+        settings_lib.number(flat["noise_exponent"], self.noise_exponent, lambda v: 0 <= v <= 3,
+                            "in [0, 3]")
         settings_lib.traced(flat["temperature"], self.temperature, positive=True)
         settings_lib.traced(flat["init_std"], self.init_std, positive=True)
 
@@ -314,10 +326,12 @@ def plan(prog, key, controller_params, obs, ctx: PlannerContext, memory: PlanMem
     def returns(actions):
         return sequence_return(prog, objective, step, obs, actions, ctx.end_softness)
 
+    colour = None if own.noise_exponent == 0 else exploration.make_noise(
+        "coloured", num_steps, 1.0, exponent=own.noise_exponent).cholesky
     return SEQUENCE_OPTIMISERS[own.planner].run(
         key, returns, mean, std, jnp.stack([ctrl, shifted]), samples=own.samples,
         iterations=own.iterations, elites=own.elites, temperature=ctx.temperature, low=-u_max,
-        high=u_max)
+        high=u_max, colour=colour)
 
 
 def make_policy(prog, model_step: Callable = gp_mean_step) -> policies.Policy:
@@ -336,12 +350,14 @@ def make_policy(prog, model_step: Callable = gp_mean_step) -> policies.Policy:
 
     def act(key, theta, state, ctx, mem):
         chex.assert_rank(state, 1)
-        key_plan, key_noise = jax.random.split(key)
-        planned = plan(prog, key_plan, theta.controller, state, ctx, mem, model_step)
+        # the noise drawn from `key` as the fixed-noise policy draws it: before the model has data
+        # the planner acts as gp_model's policy does, draw for draw
+        planned = plan(prog, jax.random.fold_in(key, 1), theta.controller, state, ctx, mem,
+                       model_step)
         mean_action = jnp.where(ctx.ready, planned.actions[0],
                                 controller.apply(theta.controller, state))
         std = jnp.exp(theta.log_std)
-        action = mean_action + std * _random.normal(key_noise, (), state.dtype)
+        action = mean_action + std * _random.normal(key, (), state.dtype)
         empty = jnp.zeros((0,), state.dtype)
         aux = policies.PolicyAux(mean_action, std * std, empty, empty, empty,
                                  jnp.zeros((), jnp.int32))
