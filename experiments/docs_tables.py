@@ -806,6 +806,55 @@ def model_tuning_table(task: str) -> str:
     return "\n".join(lines)
 
 
+def planning_ablation_table(task: str) -> str:
+    """`experiments/planning_study.py ablate` and `search`: today's gp_model, each part added
+    alone, then the search around their combination, on the tuning seeds."""
+    path = os.path.join("planning", task, "ablation.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        d = json.load(f)
+    tuning_path = os.path.join(RESULTS, "planning", task, "tuning.json")
+    search = []
+    if os.path.exists(tuning_path):
+        with open(tuning_path) as f:
+            t = json.load(f)
+        search = [("search", r) for r in t["tried"]]
+    digits = 2 if task == "swingup" else 1
+    lines = ["| part | settings added to today's | score (tuning seeds) | seeds reaching the "
+             "threshold | environment steps to it | wall time of the run |",
+             "|---|---|---|---|---|---|"]
+    for part, r in [(r["part"], r) for r in d["rows"]] + search:
+        reach = [v for v in r["steps_to"] if v is not None]
+        lines.append(f"| {part} | {_settings(r['settings']) or '–'} | {r['score']:.{digits}f} | "
+                     f"{len(reach)}/{len(r['steps_to'])} | "
+                     f"{', '.join(f'{v:,}' for v in reach) or '–'} | {r['wall_s']:.0f} s |")
+    lines += ["", _caption(f"Tuning seeds {d['seeds']}; today's settings: "
+                           f"{_settings(d['today'])}.", _source(path))]
+    return "\n".join(lines)
+
+
+def planning_table(task: str) -> str:
+    """`experiments/planning_study.py report`: the chosen parts on held-out seeds beside today's
+    gp_model, SAC and PPO, with the objective each planned with."""
+    path = os.path.join("planning", task, "heldout_table.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        d = json.load(f)
+    measure = d["measure"]
+    lines = ["| method | planned with | seeds reaching the threshold | environment steps to it, "
+             f"median | wall time to it, median | final {measure}, mean |",
+             "|---|---|---|---|---|---|"]
+    for r in d["rows"]:
+        wall = r.get("wall_to_threshold_median")
+        final = f"{r['final_mean']:.2f}" if measure == "success rate" else f"{r['final_mean']:.1f}"
+        lines.append(f"| {r['method']} | {r['objective']} | {r['seeds_reaching']}/{r['seeds']} | "
+                     f"{_steps(r['steps_to_threshold_median'])} | "
+                     f"{'–' if wall is None else f'{wall:.0f} s'} | {final} |")
+    chosen = d["rows"][0].get("settings", {})
+    lines += ["", _caption(f"Held-out seeds {_seed_range(d['seeds'])}; threshold: a {measure} of "
+                           f"{d['threshold']:g}; the planning parts' settings: "
+                           f"{_settings(chosen)}.", _source(path))]
+    return "\n".join(lines)
+
+
 # with a gp_model study (its tuning record and held-out runs)
 MODEL_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
                "inverted-double-pendulum", "swingup")
@@ -852,6 +901,9 @@ TABLES = {
     **{f"model_{t.replace('-', '_')}": (lambda t=t: model_table(t)) for t in MODEL_TASKS},
     **{f"model_tuning_{t.replace('-', '_')}": (lambda t=t: model_tuning_table(t))
        for t in MODEL_TASKS},
+    **{f"planning_ablation_{t.replace('-', '_')}": (lambda t=t: planning_ablation_table(t))
+       for t in MODEL_TASKS},
+    **{f"planning_{t.replace('-', '_')}": (lambda t=t: planning_table(t)) for t in MODEL_TASKS},
 }
 BLOCK = re.compile(r"(<!-- generated: (\w+) -->\n)(.*?)(<!-- end: \2 -->)", re.S)
 

@@ -16,7 +16,7 @@ Stages, per task; each writes under --out (default docs/results/model/<task>):
             evaluations in the second half of the budget (mean over seeds): it rewards reaching
             the threshold early and staying there. Writes tuning.json.
 ``heldout`` Held-out seeds (1000-1009; 1000-1019 for the swing-up): gp_model with the tuned
-            settings under each of the model's exploration choices (`model_based.EXPLORATIONS`;
+            settings under each of the model's exploration choices (`USES`;
             --only: which), each alone through `gpguided reproduce`'s driver. Writes
             heldout/<choice>.npz and .json (resumes as the standard tasks' study does). With
             --reward learned: the same runs with the reward learnt by the model instead of the
@@ -47,7 +47,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from gpguided_jax import baselines, exploration, model_based, stats, study, tasks  # noqa: E402
+from gpguided_jax import baselines, exploration, stats, study, tasks  # noqa: E402
 from gpguided_jax import config as config_lib  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -59,6 +59,9 @@ TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum", "inverted
 # (the car and the swing-up: 10 episodes)
 BUDGETS = {"pendulum-v1": 2000, "mountaincar-continuous": 9990, "inverted-pendulum": 6000,
            "inverted-double-pendulum": 6000, "swingup": 9000}
+# the uses of the model's uncertainty this study's grids and held-out runs were written with (the
+# uses added after it, `model_based.EXPLORATIONS`, are experiments/exploration_uses_study.py's)
+USES = ("mean", "sample", "thompson", "optimistic")
 # where the search starts in the settings it searches (`GRIDS`); the settings it leaves alone
 # are gp_model's preset's (`base`: one episode an update, the first episode's noise, the floor
 # after it, the evaluation episodes, and on brax's pendulums episodes restarted where they end and
@@ -78,25 +81,25 @@ START = {
 # (parameter, values) per stage, applied over the best so far (its default between the values):
 # the exploration choice, the simulated horizon (s; default 4), the Adam step (0.01), the
 # optimiser steps per update (100), the inducing inputs (200) and L-BFGS in place of Adam
-GRIDS = {"pendulum-v1": [("model_exploration", list(model_based.EXPLORATIONS)),
+GRIDS = {"pendulum-v1": [("model_exploration", list(USES)),
                          ("model_horizon", [2.0, 8.0]),
                          ("model_learning_rate", [0.003, 0.03]),
                          ("model_steps", [50, 200]),
                          ("model_inducing", [100, 400]),
                          ("model_optimizer", ["lbfgs"])],
          # a smaller grid where a run costs more: the exploration choice and the horizon (8 s)
-         "inverted-pendulum": [("model_exploration", list(model_based.EXPLORATIONS)),
+         "inverted-pendulum": [("model_exploration", list(USES)),
                                ("model_horizon", [4.0, 16.0])],
-         "inverted-double-pendulum": [("model_exploration", list(model_based.EXPLORATIONS)),
+         "inverted-double-pendulum": [("model_exploration", list(USES)),
                                       ("model_horizon", [2.0, 8.0])],
          # the car: the exploration choice, the end's smoothing, the horizon and the hold
-         "mountaincar-continuous": [("model_exploration", list(model_based.EXPLORATIONS)),
+         "mountaincar-continuous": [("model_exploration", list(USES)),
                                     ("model_end_softness", [0.3, 3.0]),
                                     ("model_horizon", [100.0, 400.0]),
                                     ("hold_time", [2.0, 10.0])],
          # the swing-up (from 4.5 s and 0.1 s held, `START`): the exploration choice, the horizon,
          # the hold, the inducing inputs and the optimiser's steps
-         "swingup": [("model_exploration", list(model_based.EXPLORATIONS)),
+         "swingup": [("model_exploration", list(USES)),
                      ("model_horizon", [3.0, 6.0]),
                      ("hold_time", [0.05, 0.2]),
                      ("model_inducing", [100, 400]),
@@ -111,12 +114,22 @@ BESIDE = tuple(reversed(baselines.NAMES))
 PAPER = tuple(f"{m}{end}" for end in ("", "_restart") for m in (*config_lib.PAPER_METHODS, "gp_critic"))
 
 
+def planned(task: str) -> dict:
+    """The settings the planning study chose for `task` on top of this study's
+    (docs/results/planning/<task>/tuning.json's `chosen`; experiments/planning_study.py), which
+    the preset holds too: {} where it has not run."""
+    path = os.path.join(ROOT, "docs", "results", "planning", task, "tuning.json")
+    return study.read_json(path, {}).get("chosen", {}) if os.path.exists(path) else {}
+
+
 def base(task: str) -> dict:
     """The settings every run of `task` starts from: gp_model's preset
     (`config.METHOD_PRESETS[task]['gp_model']`) without the settings the search chose (those of
-    `GRIDS[task]`) and the budget's updates, and where the search starts in those (`START`)."""
+    `GRIDS[task]`), those the planning study chose after it (`planned`) and the budget's updates,
+    and where the search starts in those (`START`)."""
     searched = {p for params, _ in GRIDS[task]
                 for p in (params if isinstance(params, (tuple, list)) else (params,))}
+    searched |= set(planned(task))
     start = START.get(task, {})
     preset = config_lib.METHOD_PRESETS[task][METHOD]
     kept = {k: start.get(k, v) for k, v in preset.items()
@@ -270,7 +283,7 @@ def _others(task: str, seeds: list) -> dict:
 def report(task: str, out: str) -> None:
     record, threshold, measure_name = measure(task)
     rows, curves = [], {}
-    runs = [(c, r) for r in ("stated", "learned") for c in model_based.EXPLORATIONS]
+    runs = [(c, r) for r in ("stated", "learned") for c in USES]
     for choice, reward in runs:
         p = os.path.join(out, "heldout", _name(choice, reward))
         label = f"gp_model ({choice}{', reward learned' if reward == 'learned' else ''})"
@@ -342,8 +355,8 @@ def main(argv=None) -> int:
     p.add_argument("stage", choices=("tune", "heldout", "report"))
     p.add_argument("--task", choices=TASKS, default="pendulum-v1")
     p.add_argument("--out", default=None)
-    p.add_argument("--only", nargs="+", default=list(model_based.EXPLORATIONS),
-                   choices=model_based.EXPLORATIONS)
+    p.add_argument("--only", nargs="+", default=list(USES),
+                   choices=USES)
     p.add_argument("--reward", choices=("stated", "learned"), default="stated",
                    help="heldout: the task's stated reward (default) or one the model learns")
     args = p.parse_args(argv)

@@ -31,7 +31,7 @@ import numpy as np
 from gpguided_jax import exploration, methods, pendulum, tasks
 from gpguided_jax import settings as settings_lib
 
-CONTROLLERS = ("linear", "rbf")
+CONTROLLERS = ("linear", "rbf", "rbf_trainable", "linear_rbf")
 AGE_FUNCTIONS = ("exp", "logit")
 OPTIMIZERS = ("sgd", "adam")
 DTYPES = ("float64", "float32")
@@ -48,6 +48,7 @@ STATIC_FIELDS = (
     "hyperfit_subset",
     "num_candidates",
     "controller",
+    "controller_units",
     "age_fn",
     "optimizer",
     "use_baseline",
@@ -89,7 +90,11 @@ class TrainConfig:
         collected pairs (a Cholesky factorisation per optimiser step: one of 500 points costs
         1/64 of one of 2000). Set it >= hyperfit_samples to use every pair.
       num_candidates: K, candidate actions of the Gibbs policy.
-      controller: 'linear' or 'rbf'.
+      controller: 'linear', 'rbf' (fixed centres and widths), 'rbf_trainable' (centres, widths
+        and weights trained: gp_model only) or 'linear_rbf' (the trainable network plus a linear
+        part).
+      controller_units: the trainable networks' units (0: the task's default, 40 on the paper's
+        pendulum, 32 on the others).
       age_fn: 'exp' (eq. 14) or 'logit' (eq. 15).
       optimizer: 'sgd' (the paper) or 'adam'.
       use_baseline: subtract V(s) = Q_GP(s, c(s)) (GP methods) or the batch-mean return-to-go at
@@ -172,6 +177,7 @@ class TrainConfig:
     hyperfit_subset: int = 500
     num_candidates: int = 16
     controller: str = "linear"
+    controller_units: int = 0
     age_fn: str = "exp"
     optimizer: str = "sgd"
     use_baseline: bool = False
@@ -273,9 +279,10 @@ FIELD_GROUPS: dict[str, tuple[str, ...]] = {
              "success_tolerance"),
     "gp": ("gp_capacity", "gp_stride", "novelty_tol", "age_fn", "age_penalty", "age_scale",
            "hyperfit_samples", "hyperfit_steps", "hyperfit_optimizer", "hyperfit_subset"),
-    "policy": ("controller", "init_log_std", "min_std", "max_std", "guided_variance_scale",
-               "guided_variance_floor", "num_candidates", "inverse_temperature", "energy_width",
-               "candidate_scale", "candidate_floor", "optimism"),
+    "policy": ("controller", "controller_units", "init_log_std", "min_std", "max_std",
+               "guided_variance_scale", "guided_variance_floor", "num_candidates",
+               "inverse_temperature", "energy_width", "candidate_scale", "candidate_floor",
+               "optimism"),
     "exploration": ("exploration", "noise_correlation_time", "noise_exponent",
                     "noise_resample_time", "hold_time"),
     "estimator": ("discount", "use_baseline"),
@@ -387,6 +394,8 @@ def _check_choices_and_sizes(cfg: TrainConfig) -> None:
         v = getattr(cfg, f)
         if not _integer(v) or v < 1:
             _fail(f, f"must be a positive integer, got {v!r}")
+    if not _integer(cfg.controller_units) or cfg.controller_units < 0:
+        _fail("controller_units", f"must be an integer >= 0, got {cfg.controller_units!r}")
     if cfg.hyperfit_optimizer not in ("adam", "lbfgs"):
         _fail("hyperfit_optimizer", f"must be 'adam' or 'lbfgs', got {cfg.hyperfit_optimizer!r}")
     if cfg.num_candidates < 2:
@@ -618,6 +627,20 @@ PRESETS.update({
     "inverted-double-pendulum": dict(_STANDARD, env="brax:inverted_double_pendulum",
                                      episode_length=1000, episodes_per_update=3, num_updates=33,
                                      gp_stride=5, init_log_std=math.log(0.5), max_std=1.0),
+})
+
+
+# gp_model's uses of its uncertainty where the reward must be found
+# (experiments/exploration_uses_study.py): the car and the swing-up with gp_model's reward learnt
+# (the presets' tasks and budgets as they are; another method ignores `model_reward`), and the
+# sparse swing-up on Pendulum-v1 at each action cost (`tasks.SPARSE_PENDULUM_COSTS`; the
+# standard Pendulum-v1 preset's budget and settings).
+PRESETS.update({
+    "mountaincar-continuous-learned": dict(PRESETS["mountaincar-continuous"],
+                                           model_reward="learned"),
+    "swingup-learned": dict(PRESETS["swingup"], model_reward="learned"),
+    **{f"pendulum-sparse-{c:g}": dict(PRESETS["pendulum-v1"], env=f"gymnax:{i}")
+       for i, c in zip(tasks.SPARSE_PENDULUM_IDS, tasks.SPARSE_PENDULUM_COSTS)},
 })
 
 

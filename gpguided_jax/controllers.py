@@ -12,6 +12,11 @@ Two feature maps are provided:
 * `rbf_controller`: a radial-basis-function network whose centres lie on a fixed grid over
   (phi, omega), embedded periodically as (sin phi, cos phi, omega), with fixed widths, plus a bias.
 
+`trainable_rbf_controller` is not linear in its parameters: an RBF network whose centres, widths
+and output weights are all trained (PILCO's controller, Deisenroth & Rasmussen 2011), optionally
+plus a linear part. It declares no hand-derived gradient (gp_model differentiates it by autodiff);
+the paper's methods refuse it.
+
 Following optax, a constructor closes over the static configuration (torque limit, centres and
 widths, which are NumPy constants) and returns a `Controller` of pure functions of
 (params, state). The state is one (2,) vector [phi, omega]; batch with `jax.vmap`.
@@ -72,6 +77,15 @@ class Controller(NamedTuple):
     u_max: float
     features: Callable[[jax.Array], Params] | None = None
     value_and_grad: Callable[[Params, jax.Array], tuple[jax.Array, Params]] | None = None
+
+
+def mean_and_grad(controller: Controller, params: Params, state: jax.Array):
+    """(c(s), dc/dtheta_c): the controller's hand-derived `value_and_grad`, or autodiff of its
+    `apply` for a controller that declares none (the roll-outs' score function needs the
+    gradient whatever the controller)."""
+    if controller.value_and_grad is not None:
+        return controller.value_and_grad(params, state)
+    return jax.value_and_grad(controller.apply)(params, state)
 
 
 def _preactivation(params: Params, psi: Params) -> jax.Array:
@@ -193,11 +207,111 @@ def rbf_controller(
     return make_squashed(features_fn, zeros_fn, float(u_max))
 
 
-CONTROLLERS = {"linear": linear_controller, "rbf": rbf_controller}
+class TrainableRBFParams(NamedTuple):
+    """Parameters of the trainable RBF network (`trainable_rbf_controller`).
+
+    Attributes:
+      centres: (M, K) centres in the embedding y(s).
+      log_widths: (K,) logs of the widths, one per coordinate of the embedding, shared by the
+        units (PILCO's shared lengthscales).
+      weights: (M,) output weights.
+      bias: () bias added before the squashing.
+      linear: (K,) weights of a linear part w^T y(s) (None for the network alone: no leaf, so
+        that every leaf has a size).
+    """
+
+    centres: jax.Array
+    log_widths: jax.Array
+    weights: jax.Array
+    bias: jax.Array
+    linear: jax.Array | None
+
+
+def trainable_rbf_controller(embed: Callable[[jax.Array], jax.Array], centres, widths, u_max: float,
+                             *, linear: bool = False) -> Controller:
+    """c(s) = u_max tanh(sum_i w_i exp(-|(y(s) - mu_i) / ell|^2 / 2) + b [+ v^T y(s)]), with the
+    centres mu_i, the widths ell (one per coordinate of the embedding y = `embed(s)`), the weights
+    w, the bias b and the linear part's v all trained (design: docs/design.md#model).
+
+    Args:
+      embed: the embedding y(s), a (K,) vector (the normalised observation, or the pendulum's
+        (sin phi, cos phi, omega)).
+      centres: (M, K) the centres' initial values (NumPy).
+      widths: (K,) or () the widths' initial values (NumPy).
+      u_max: torque limit.
+      linear: whether to add the linear part v^T y(s) (zero at the start).
+    """
+    centres = np.asarray(centres, np.float64)
+    m, k = centres.shape
+    log_widths = np.log(np.broadcast_to(np.asarray(widths, np.float64), (k,)))
+
+    def apply(params, state):
+        y = embed(state)
+        d = (y[None, :] - params.centres) * jnp.exp(-params.log_widths)
+        z = jnp.exp(-0.5 * jnp.sum(d * d, axis=-1)) @ params.weights + params.bias
+        if linear:
+            z = z + params.linear @ y
+        return u_max * jnp.tanh(z)
+
+    def init(dtype=None):
+        dtype = dtype or jnp.result_type(float)
+        return TrainableRBFParams(jnp.asarray(centres, dtype), jnp.asarray(log_widths, dtype),
+                                  jnp.zeros((m,), dtype), jnp.zeros((), dtype),
+                                  jnp.zeros((k,), dtype) if linear else None)
+
+    return Controller(init=init, apply=apply, u_max=float(u_max))
+
+
+def farthest_point_centres(points: np.ndarray, n: int) -> np.ndarray:
+    """`n` of `points` chosen greedily, each the farthest from those chosen before (the first is
+    the point nearest the mean): an even cover of the visited region."""
+    chosen = [int(np.argmin(np.sum((points - points.mean(0)) ** 2, axis=1)))]
+    dist = np.sum((points - points[chosen[0]]) ** 2, axis=1)
+    for _ in range(min(n, len(points)) - 1):
+        j = int(np.argmax(dist))
+        chosen.append(j)
+        dist = np.minimum(dist, np.sum((points - points[j]) ** 2, axis=1))
+    return points[chosen]
+
+
+def mean_gap(centres: np.ndarray) -> float:
+    """The mean distance from a centre to its nearest neighbour (1 for a single centre)."""
+    if len(centres) < 2:
+        return 1.0
+    gaps = np.sqrt(np.sum((centres[:, None] - centres[None]) ** 2, axis=-1))
+    np.fill_diagonal(gaps, np.inf)
+    return float(np.mean(np.min(gaps, axis=1)))
+
+
+def pendulum_trainable_rbf(u_max: float = 5.0, units: int = 0, *, linear: bool = False,
+                           max_velocity: float = 6.0) -> Controller:
+    """`trainable_rbf_controller` on the paper's pendulum: the embedding (sin phi, cos phi,
+    omega), the centres started on `rbf_controller`'s grid (units 0: its 40), or `units` of them
+    spread by farthest points over a fine grid of the state space, each coordinate in units of
+    the default network's widths (which are the initial widths)."""
+    inv = np.array([1.0 / (2.0 * np.sin(np.pi / 8)), 1.0 / (2.0 * np.sin(np.pi / 8)),
+                    4.0 / (2.0 * max_velocity)])
+    grid = rbf_grid(8, 5, max_velocity) if units <= 0 else rbf_grid(64, 33, max_velocity)
+    embedded = np.stack([np.sin(grid[:, 0]), np.cos(grid[:, 0]), grid[:, 1]], axis=-1)
+    if units > 0:
+        embedded = farthest_point_centres(embedded * inv, units) / inv
+
+    def embed(state):
+        chex.assert_shape(state, (2,))
+        return jnp.stack([jnp.sin(state[0]), jnp.cos(state[0]), state[1]])
+
+    return trainable_rbf_controller(embed, embedded, 1.0 / inv, u_max, linear=linear)
+
+
+CONTROLLERS = {"linear": linear_controller, "rbf": rbf_controller,
+               "rbf_trainable": pendulum_trainable_rbf,
+               "linear_rbf": lambda u_max=5.0, units=0: pendulum_trainable_rbf(u_max, units,
+                                                                               linear=True)}
 
 
 def make_controller(name: str, **kwargs) -> Controller:
-    """Looks a controller constructor up by name ('linear' or 'rbf')."""
+    """Looks a controller constructor up by name (`CONTROLLERS`: 'linear', 'rbf', 'rbf_trainable'
+    or 'linear_rbf')."""
     if name not in CONTROLLERS:
         raise ValueError(f"unknown controller {name!r}; choose from {sorted(CONTROLLERS)}")
     return CONTROLLERS[name](**kwargs)

@@ -54,8 +54,8 @@ SHARED_RECORDS = (
 # The config fields the Q-GP prior's fit reads (`train.fit_prior`): the fixed-noise policy's
 # roll-outs from the initial parameters on the task, their returns-to-go and the fit's settings.
 Q_GP_FIT_FIELDS = (
-    "env", "pendulum", "dtype", "controller", "episode_length", "episode_end", "hold_time",
-    "exploration", "noise_correlation_time", "noise_exponent", "noise_resample_time",
+    "env", "pendulum", "dtype", "controller", "controller_units", "episode_length", "episode_end",
+    "hold_time", "exploration", "noise_correlation_time", "noise_exponent", "noise_resample_time",
     "init_log_std", "discount", "hyperfit_samples", "hyperfit_steps", "hyperfit_optimizer",
     "hyperfit_subset",
 )

@@ -284,7 +284,7 @@ def guided_variance_and_grad(controller, controller_params, state, ctx, features
       (variance, grad_variance, mean_action, grad_mean_action); the gradients are pytrees like
       controller_params.
     """
-    mean_action, grad_mean = controller.value_and_grad(controller_params, state)
+    mean_action, grad_mean = controllers_lib.mean_and_grad(controller, controller_params, state)
     latent, dlatent_da = gp_latent_variance_and_grad(ctx.gp, ctx.kernel, state, mean_action, features)
     scaled = ctx.variance_scale * latent
     variance = _floored(scaled, ctx.variance_floor)
@@ -329,7 +329,7 @@ def fixed_noise_policy(controller: controllers_lib.Controller) -> Policy:
     def grad_log_prob(theta, state, action, ctx, aux):
         del ctx, aux
         chex.assert_rank(state, 1)
-        mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
+        mean_action, grad_mean = controllers_lib.mean_and_grad(controller, theta.controller, state)
         variance = jnp.exp(2.0 * theta.log_std)
         diff = action - mean_action
         return PolicyParams(
@@ -344,7 +344,7 @@ def fixed_noise_policy(controller: controllers_lib.Controller) -> Policy:
     def act(key, theta, state, ctx):
         del ctx
         chex.assert_rank(state, 1)
-        mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
+        mean_action, grad_mean = controllers_lib.mean_and_grad(controller, theta.controller, state)
         std = jnp.exp(theta.log_std)
         action = mean_action + std * _random.normal(key, (), mean_action.dtype)
         variance = std * std
@@ -358,7 +358,7 @@ def fixed_noise_policy(controller: controllers_lib.Controller) -> Policy:
     def gaussian(theta, state, ctx):
         del ctx
         chex.assert_rank(state, 1)
-        mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
+        mean_action, grad_mean = controllers_lib.mean_and_grad(controller, theta.controller, state)
         std = jnp.exp(theta.log_std)
         j_mean = PolicyParams(controller=_scale_tree(grad_mean, 1.0 / std),
                               log_std=jnp.zeros_like(theta.log_std))
@@ -573,7 +573,7 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
         """The candidates, their energies and the selection; also (E, dc/dtheta_c) for the score."""
         chex.assert_rank(state, 1)
         key_candidates, key_select = jax.random.split(key)
-        mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
+        mean_action, grad_mean = controllers_lib.mean_and_grad(controller, theta.controller, state)
         latent = gp_latent_variance(ctx.gp, ctx.kernel, state, mean_action, features)
         variance = _floored(ctx.candidate_scale * latent, ctx.candidate_floor)
         candidates = mean_action + jnp.sqrt(variance) * _random.normal(
@@ -609,7 +609,7 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
     def grad_log_prob(theta, state, action, ctx, aux):
         del action
         chex.assert_rank(state, 1)
-        mean_action, grad_mean = controller.value_and_grad(theta.controller, state)
+        mean_action, grad_mean = controllers_lib.mean_and_grad(controller, theta.controller, state)
         energy, probs = gibbs_distribution(aux.candidates, aux.normalised_q, mean_action, ctx)
         return _gibbs_score(theta, aux._replace(mean_action=mean_action), energy, probs, grad_mean,
                             ctx)

@@ -75,7 +75,10 @@ class Program(NamedTuple):
 
 def make_controller(cfg: TrainConfig) -> controllers_lib.Controller:
     """The controller of `cfg.controller` on the observations of `cfg.env`."""
-    return tasks.make_task(cfg.env).make_controller(cfg.controller)
+    task = tasks.make_task(cfg.env)
+    if cfg.controller_units:
+        return task.make_controller(cfg.controller, cfg.controller_units)
+    return task.make_controller(cfg.controller)
 
 
 def make_program(cfg: TrainConfig) -> Program:
@@ -83,7 +86,7 @@ def make_program(cfg: TrainConfig) -> Program:
     validate(cfg)
     method = methods.get(cfg.method)
     task = tasks.make_task(cfg.env)
-    controller = task.make_controller(cfg.controller)
+    controller = make_controller(cfg)
     make_elsewhere = policies.made_elsewhere(method.policy)  # a planner: made from the program
     policy = None if make_elsewhere else policies.make_policy(
         method.policy, controller, num_candidates=cfg.num_candidates,
@@ -244,7 +247,7 @@ def rollout(prog: Program, key, theta, ctx, policy, cfg: TrainConfig) -> Episode
             a = controller.apply(exploration.perturbed_parameters(theta.controller, draw, scale),
                                  obs)
             # the action's standard deviation at this state, to first order in the noise
-            _, grad = controller.value_and_grad(theta.controller, obs)
+            _, grad = controllers_lib.mean_and_grad(controller, theta.controller, obs)
             sq = sum(jnp.sum(g * g) for g in jax.tree_util.tree_leaves(grad))
             return a, scale * jnp.sqrt(sq)
 

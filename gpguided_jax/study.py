@@ -358,15 +358,18 @@ class MethodRun(NamedTuple):
 
 def run_method(preset: str, method: str, seeds: Sequence[int], run_dir: str, overrides: dict, *,
                dtype: str = "float64", chunk_size: int = 50, gp_program: str = "per_method",
-               progress: Callable[[str], None] = log) -> MethodRun:
+               progress: Callable[[str], None] = log,
+               keep_checkpoints: bool = False) -> MethodRun:
     """`method` alone on `seeds` with the preset and `overrides`, through `reproduce.reproduce`
     into `run_dir` (resumed from its checkpoint there, if any).
 
     `gp_program`: `reproduce`'s; 'per_method' (the default) compiles the method's own program, so
     that its wall time holds its own compilation, 'shared' the GP methods' one program (compiled
-    once per process; the records agree to rounding)."""
+    once per process; the records agree to rounding). `keep_checkpoints`: `reproduce`'s (the
+    final state stays in `run_dir`, for what a study reads of it)."""
     out = reproduce.reproduce(preset, seeds, [method], run_dir, dtype=dtype, chunk_size=chunk_size,
-                              overrides=overrides, progress=progress, gp_program=gp_program)
+                              overrides=overrides, progress=progress, gp_program=gp_program,
+                              keep_checkpoints=keep_checkpoints)
     if not out["complete"]:
         raise RuntimeError(f"{method} did not finish in {run_dir}")
     with np.load(os.path.join(run_dir, "results.npz")) as f:

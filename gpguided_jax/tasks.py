@@ -25,6 +25,10 @@ Three kinds of task are supported (`make_task(name)`):
   goal changes nothing within an episode: a car is at or past the goal moving left only after a
   step that began past the goal, and it first gets there moving right, which ends the episode
   (tests/test_task_reference.py steps both tasks beside gymnasium's environments).
+  ``gymnax:Pendulum-v1-sparse-<rho>`` (rho 0, 0.1, 0.2: `SPARSE_PENDULUM_COSTS`) is Pendulum-v1's
+  step from hanging with H-UCRL's sparse swing-up reward less an action cost rho
+  (`sparse_pendulum_reward`; `GYMNAX_VARIANTS`: a gymnax environment with another start and
+  reward, named by its gymnax id and the variant).
 * ``brax:<name>``: a brax environment through brax's own `Env` (``reset(rng)``, ``step(state,
   action)``): inverted_pendulum and inverted_double_pendulum. brax's environments neither take a key
   in `step` nor clip the action; the action is clipped to brax's range [-1, 1] before the step.
@@ -65,8 +69,12 @@ from gpguided_jax import controllers as controllers_lib
 from gpguided_jax import kernels, pendulum
 
 GYMNAX_ENVS = ("Pendulum-v1", "MountainCarContinuous-v0")
+# the action costs rho of the sparse swing-up (`sparse_pendulum_reward`): H-UCRL's figure's
+SPARSE_PENDULUM_COSTS = (0.0, 0.1, 0.2)
+SPARSE_PENDULUM_IDS = tuple(f"Pendulum-v1-sparse-{c:g}" for c in SPARSE_PENDULUM_COSTS)
 BRAX_ENVS = ("inverted_pendulum", "inverted_double_pendulum")
-SUPPORTED = ("pendulum", *(f"gymnax:{e}" for e in GYMNAX_ENVS), *(f"brax:{e}" for e in BRAX_ENVS))
+SUPPORTED = ("pendulum", *(f"gymnax:{e}" for e in GYMNAX_ENVS + SPARSE_PENDULUM_IDS),
+             *(f"brax:{e}" for e in BRAX_ENVS))
 
 PLACEMENT_EPISODES = 16  # random-action episodes that place the normalisation and RBF centres
 PLACEMENT_KEY = 20120610  # their fixed key (the same placement for every seed and method)
@@ -93,7 +101,8 @@ class Task(NamedTuple):
       step: (key, env_state, action, cfg) -> (env_state, obs, reward, done).
       features: (obs, action) -> (feature_dim,) GP input, the action last.
       feature_dim: length of the GP input.
-      make_controller: (name) -> `controllers.Controller` on observations ('linear' or 'rbf').
+      make_controller: (name, units=0) -> `controllers.Controller` on observations ('linear',
+        'rbf', 'rbf_trainable' or 'linear_rbf'; `units` the trainable network's, 0 its default).
       obs_centre, obs_scale: the normalisation z = (obs - centre) / scale (NumPy; zeros and ones
         for the pendulum, whose controllers and features take the raw state).
       reward_fn: (obs, action, next_obs, end=None) -> the environment's reward as a pure
@@ -107,6 +116,10 @@ class Task(NamedTuple):
         of the observation's normalisation scale (a model plans with a smoothed end through it).
       angles: the observation coordinates that are angles wrapped to one turn (the model takes
         their differences and sums modulo 2 pi).
+      target: (obs) -> the displacement, in the task's units (m), of what the task asks for from
+        where it is wanted (the pole's tip from upright, the car from the goal); None where the
+        task declares no target. PILCO's saturating cost plans with it (`target_width`).
+      target_width: the saturating cost's width sigma_c, in the units of `target`.
     """
 
     name: str
@@ -127,6 +140,8 @@ class Task(NamedTuple):
     end_fn: Callable[..., Any] | None = None
     angles: tuple[int, ...] = ()
     end_margin: Callable[..., Any] | None = None
+    target: Callable[..., Any] | None = None
+    target_width: float = 1.0
 
 
 def discount_for_horizon(horizon_s: float, dt: float) -> float:
@@ -163,10 +178,17 @@ def _pendulum_task() -> Task:
         name="pendulum", obs_dim=2, dt=float(pendulum.DEFAULTS["dt"]), max_action=PENDULUM_U_MAX,
         episode_length=50, terminates=False, threshold=None, reset=reset, step=step,
         features=kernels.state_action_features, feature_dim=4,
-        make_controller=lambda name: controllers_lib.make_controller(name, u_max=PENDULUM_U_MAX),
+        make_controller=lambda name, units=0: controllers_lib.make_controller(
+            name, u_max=PENDULUM_U_MAX, **({"units": units} if units else {})),
         obs_centre=np.zeros(2), obs_scale=np.ones(2),
         reward_fn=lambda obs, action, next_obs, end=None: pendulum.reward_mean(next_obs),
-        angles=(0,))
+        angles=(0,), target=_pendulum_tip_from_upright, target_width=0.5)
+
+
+def _pendulum_tip_from_upright(obs):
+    """The paper's pendulum's tip (1 m) from upright (phi = pi), from the state [phi, omega]."""
+    length = float(pendulum.DEFAULTS["length"])
+    return length * jnp.stack([jnp.sin(obs[0]), -jnp.cos(obs[0]) - 1.0])
 
 
 # ------------------------------------------------------------------------------------------------
@@ -180,6 +202,12 @@ def _pendulum_task() -> Task:
 # same, with the threshold 9,100.
 THRESHOLDS = {"gymnax:Pendulum-v1": -200.0, "gymnax:MountainCarContinuous-v0": 90.0,
               "brax:inverted_pendulum": 950.0, "brax:inverted_double_pendulum": 9100.0}
+# The sparse swing-up (200 steps of 0.05 s, a reward of at most 1 a step): swung up and held, 100
+# steps' worth of reward upright and still (half the episode) less 100 steps of the full action
+# cost, 100 (1 - rho). An energy-pumping controller with a PD catch, tuned by hand on the
+# physics, swings up from hanging in about 70 steps and scores 131 at rho = 0 and 122 at 0.2.
+THRESHOLDS.update({f"gymnax:{i}": 100.0 * (1.0 - c)
+                   for i, c in zip(SPARSE_PENDULUM_IDS, SPARSE_PENDULUM_COSTS)})
 
 
 class _Adapter(NamedTuple):
@@ -192,6 +220,11 @@ class _Adapter(NamedTuple):
     reward_fn: Callable | None = None  # (obs, action, next_obs, end=None) -> reward
     end_fn: Callable | None = None  # next_obs -> bool (`Task.end_fn`)
     end_margin: Callable | None = None  # (next_obs, scale) -> signed margin (`Task.end_margin`)
+    target: Callable | None = None  # obs -> displacement from the target (`Task.target`)
+    target_width: float = 1.0
+    # key -> (env_state, obs): the task's start where it is not `reset`'s (`reset` then places
+    # the normalisation and the RBF centres over the environment's own start distribution)
+    start: Callable | None = None
 
 
 def _pendulum_v1_reward(params):
@@ -204,6 +237,16 @@ def _pendulum_v1_reward(params):
         u = jnp.clip(action, -params.max_torque, params.max_torque)
         return -(theta ** 2 + 0.1 * obs[2] ** 2 + 0.001 * u ** 2)
     return reward, None, None
+
+
+def _pendulum_v1_target(obs):
+    """Pendulum-v1's tip (1 m) from upright, from (cos theta, sin theta, theta_dot)."""
+    return jnp.stack([obs[1], obs[0] - 1.0])
+
+
+def _car_target(obs):
+    """The car's position from the goal (0.45)."""
+    return obs[:1] - 0.45
 
 
 def _car_reward(params):
@@ -225,6 +268,79 @@ def _car_reward(params):
 
 # The gymnax tasks whose reward and end are stated as functions of the transition.
 GYMNAX_REWARDS = {"Pendulum-v1": _pendulum_v1_reward, "MountainCarContinuous-v0": _car_reward}
+# Their targets and the saturating cost's widths (pilco-matlab's pendulum: 0.5 m on a 1 m pole;
+# the car: a fifth of the valley between the start and the goal).
+GYMNAX_TARGETS = {"Pendulum-v1": (_pendulum_v1_target, 0.5),
+                  "MountainCarContinuous-v0": (_car_target, 0.2)}
+
+
+def tolerance(x, lower, upper, margin):
+    """rllib's `tolerance` (sebascuri/rllib, rllib/reward/utilities.py), which H-UCRL's rewards
+    are built of: 1 on [lower, upper], outside it 0.1^(d / margin)^2 at the distance d from the
+    interval (its `gaussian` with value 0.1 at d = margin)."""
+    half = 0.5 * (upper - lower)
+    d = jnp.maximum(jnp.abs(x - (lower + half)) - half, 0.0) / margin
+    return jnp.exp(jnp.log(0.1) * d * d)
+
+
+def sparse_pendulum_reward(obs, action, next_obs=None, end=None, *, action_cost: float,
+                           max_torque: float = 2.0):
+    """H-UCRL's sparse swing-up reward (Curi, Berkenkamp & Krause, NeurIPS 2020; sebascuri/hucrl,
+    exps/inverted_pendulum/util.py, `PendulumReward`) of the state an action is taken in, from
+    Pendulum-v1's observation (cos theta, sin theta, theta_dot), theta = 0 upright:
+
+      tol(cos theta; [0.95, 1], 0.1) tol(theta_dot; [-0.5, 0.5], 0.5)
+        + rho (tol(u / u_max; [-0.1, 0.1], 0.1) - 1),
+
+    `tolerance` rllib's, rho = `action_cost`, u the torque clipped to the bound u_max (hucrl's
+    action is in units of its bound: its model clamps it to [-1, 1]). The state's part is 1
+    within about 18 degrees of upright and 0.5 rad/s of still, and below 1e-40 hanging; the
+    action's part costs rho for any torque past 0.3 u_max, nothing within 0.1 u_max.
+    rllib's own PendulumSwingUp-v0 (rllib/environment/mujoco/pendulum_swing_up.py, sparse=True)
+    has the same form with the angle's margin 0.3 and the raw torque in the action's."""
+    del next_obs, end
+    u = jnp.clip(action, -max_torque, max_torque) / max_torque
+    upright = tolerance(obs[0], 0.95, 1.0, 0.1) * tolerance(obs[2], -0.5, 0.5, 0.5)
+    return upright + action_cost * (tolerance(u, -0.1, 0.1, 0.1) - 1.0)
+
+
+SPARSE_PENDULUM_START = 0.01  # the start's spread about hanging and still (rllib's swing-up's)
+
+
+def _sparse_pendulum(action_cost: float):
+    """Pendulum-v1 as the sparse swing-up with action cost rho (`sparse_pendulum_reward`): gymnax's
+    step, its reward replaced; each episode starts hanging, theta = pi + U(-0.01, 0.01), theta_dot =
+    U(-0.01, 0.01) (H-UCRL's starts at (pi, 0) exactly, rllib's swing-up within 0.01 of it), where
+    gymnax draws theta over the whole circle. gymnax's start still places the normalisation and
+    the RBF centres (`_Adapter.start`), so that they cover the upright states the reward pays."""
+
+    def variant(env, params, adapter: _Adapter) -> _Adapter:
+        reward = functools.partial(sparse_pendulum_reward, action_cost=action_cost,
+                                   max_torque=float(params.max_torque))
+
+        def start(key):
+            k_reset, k_near = jax.random.split(key)
+            _, state = env.reset_env(k_reset, params)
+            dtype = state.theta.dtype  # gymnax's (float64 in JAX's 64-bit mode)
+            near = jax.random.uniform(k_near, (2,), dtype, -SPARSE_PENDULUM_START,
+                                      SPARSE_PENDULUM_START)
+            state = state.replace(theta=jnp.asarray(np.pi, dtype) + near[0], theta_dot=near[1])
+            return state, env.get_obs(state)
+
+        def step(key, state, action):
+            before = env.get_obs(state)
+            state, obs, _, done = adapter.step(key, state, action)
+            return state, obs, reward(before, jnp.reshape(action, ())), done
+
+        return adapter._replace(step=step, start=start, reward_fn=reward)
+
+    return variant
+
+
+# gymnax environments with another start and reward: id -> (gymnax's id, the variant of its
+# adapter, `variant(env, params, adapter) -> adapter`)
+GYMNAX_VARIANTS = {i: ("Pendulum-v1", _sparse_pendulum(c))
+                   for i, c in zip(SPARSE_PENDULUM_IDS, SPARSE_PENDULUM_COSTS)}
 
 
 def _gymnax_adapter(env_id: str) -> _Adapter:
@@ -234,6 +350,8 @@ def _gymnax_adapter(env_id: str) -> _Adapter:
         raise TaskError(f"gymnax:{env_id} needs gymnax: pip install 'gpguided_jax[gymnax]' ({e})") from e
     from gymnax.environments import spaces
 
+    name = env_id
+    env_id, variant = GYMNAX_VARIANTS.get(name, (name, None))
     if env_id not in gymnax.registered_envs:
         raise TaskError(f"unknown environment 'gymnax:{env_id}'; {_supported_line()}")
     env, params = gymnax.make(env_id)
@@ -258,8 +376,10 @@ def _gymnax_adapter(env_id: str) -> _Adapter:
 
     dt = float(getattr(params, "dt", 1.0))  # an environment without a time (the car): 1 s a step
     stated = GYMNAX_REWARDS[env_id](params) if env_id in GYMNAX_REWARDS else (None, None, None)
-    return _Adapter(int(np.prod(env.observation_space(params).shape)), dt, max_action,
-                    int(params.max_steps_in_episode), reset, step, *stated)
+    target = GYMNAX_TARGETS.get(env_id, (None, 1.0))
+    adapter = _Adapter(int(np.prod(env.observation_space(params).shape)), dt, max_action,
+                       int(params.max_steps_in_episode), reset, step, *stated, *target)
+    return adapter if variant is None else variant(env, params, adapter)
 
 
 def gymnasium_car_wall(env, state, params):
@@ -307,7 +427,8 @@ def _brax_adapter(name: str) -> _Adapter:
     # environment op by op, which compiles each of its physics' operations (seconds on a CPU)
     obs_dim = jax.eval_shape(env.reset, jax.random.PRNGKey(0)).obs.shape[-1]
     return _Adapter(int(obs_dim), float(env.dt), 1.0, 1000, reset, step,
-                    *BRAX_REWARDS.get(name, (None, None, None)))
+                    *BRAX_REWARDS.get(name, (None, None, None)),
+                    *BRAX_TARGETS.get(name, (None, 1.0)))
 
 
 def _inverted_pendulum_reward(obs, action, next_obs, end=None):
@@ -364,6 +485,24 @@ BRAX_REWARDS = {"inverted_pendulum": (_inverted_pendulum_reward, _inverted_pendu
                                              _inverted_double_pendulum_margin)}
 
 
+def _inverted_pendulum_target(obs):
+    """brax's inverted pendulum's pole tip (0.6 m) from upright over the rail's centre, from (the
+    cart's x, the pole's angle, ...)."""
+    return jnp.stack([obs[0] + 0.6 * jnp.sin(obs[1]), 0.6 * (jnp.cos(obs[1]) - 1.0)])
+
+
+def _inverted_double_pendulum_target(obs):
+    """brax's double pendulum's tip from upright over the rail's centre (1.2 m high)."""
+    x, height = _double_pendulum_tip(obs)
+    return jnp.stack([x, height - 1.2])
+
+
+# Their targets and the saturating cost's widths (pilco-matlab's cart-pole: 0.25 m on a 0.6 m
+# pole; its double pendulum: 0.5 m).
+BRAX_TARGETS = {"inverted_pendulum": (_inverted_pendulum_target, 0.25),
+                "inverted_double_pendulum": (_inverted_double_pendulum_target, 0.5)}
+
+
 def _supported_line() -> str:
     return ("Algorithm 1 trains on environments with one continuous action, such as "
             + ", ".join(SUPPORTED))
@@ -396,21 +535,36 @@ def _random_action_observations(adapter: _Adapter) -> np.ndarray:
     return obs.reshape(-1, obs.shape[-1])[alive.reshape(-1)]
 
 
-def farthest_point_centres(points: np.ndarray, n: int) -> np.ndarray:
-    """`n` of `points` chosen greedily, each the farthest from those chosen before (the first is
-    the point nearest the mean): an even cover of the visited region."""
-    chosen = [int(np.argmin(np.sum((points - points.mean(0)) ** 2, axis=1)))]
-    dist = np.sum((points - points[chosen[0]]) ** 2, axis=1)
-    for _ in range(min(n, len(points)) - 1):
-        j = int(np.argmax(dist))
-        chosen.append(j)
-        dist = np.minimum(dist, np.sum((points - points[j]) ** 2, axis=1))
-    return points[chosen]
+farthest_point_centres = controllers_lib.farthest_point_centres
+START_DRAWS = 64  # start observations drawn when a task is made (the trainable RBF's centres)
 
 
-def _observation_controller(name: str, u_max: float, centre, scale, rbf_centres, rbf_width):
+def _start_observations(adapter: _Adapter) -> np.ndarray:
+    """`START_DRAWS` observations of the task's start distribution, with a fixed key: (n,
+    obs_dim)."""
+    keys = jax.random.split(jax.random.key(PLACEMENT_KEY + 1), START_DRAWS)
+    start = adapter.start or adapter.reset
+    with jax.default_device(jax.devices("cpu")[0]):
+        obs = jax.jit(jax.vmap(lambda k: start(k)[1]))(keys)
+    return np.asarray(obs, np.float64)
+
+
+def _observation_controller(name: str, u_max: float, centre, scale, rbf_centres, rbf_width,
+                           visited=None, starts=None, units: int = 0):
     obs_dim = len(centre)
 
+    if name in ("rbf_trainable", "linear_rbf"):
+        # centres started from the start distribution (a quarter) and the visited states
+        m = units or len(rbf_centres)
+        n_start = 0 if starts is None else min(m // 4, len(starts))
+        z_start = (starts - centre) / scale if n_start else np.zeros((0, obs_dim))
+        chosen = np.concatenate([farthest_point_centres(z_start, n_start)[:n_start],
+                                 farthest_point_centres(visited, m - n_start)])
+
+        def embed(obs):
+            return (obs - jnp.asarray(centre, obs.dtype)) / jnp.asarray(scale, obs.dtype)
+        return controllers_lib.trainable_rbf_controller(
+            embed, chosen, controllers_lib.mean_gap(chosen), u_max, linear=name == "linear_rbf")
     if name == "linear":
         def features_fn(obs):
             z = (obs - jnp.asarray(centre, obs.dtype)) / jnp.asarray(scale, obs.dtype)
@@ -440,12 +594,12 @@ def _external_task(name: str, adapter: _Adapter) -> Task:
     scale = np.where(scale > 1e-6, scale, 1.0)  # a coordinate that never moved is left as it is
     z = (obs - centre) / scale
     rbf_centres = farthest_point_centres(z, RBF_CENTRES)
-    gaps = np.sqrt(np.sum((rbf_centres[:, None] - rbf_centres[None]) ** 2, axis=-1))
-    np.fill_diagonal(gaps, np.inf)
-    rbf_width = float(np.mean(np.min(gaps, axis=1))) if len(rbf_centres) > 1 else 1.0
+    rbf_width = controllers_lib.mean_gap(rbf_centres)
+    starts = _start_observations(adapter)
+    start = adapter.start or adapter.reset
 
     def reset(key, cfg):
-        env_state, o = adapter.reset(key)
+        env_state, o = start(key)
         return env_state, jnp.asarray(o, cfg.dtype)
 
     def step(key, env_state, action, cfg):
@@ -460,11 +614,12 @@ def _external_task(name: str, adapter: _Adapter) -> Task:
         name=name, obs_dim=adapter.obs_dim, dt=adapter.dt, max_action=adapter.max_action,
         episode_length=adapter.episode_length, terminates=True, threshold=THRESHOLDS.get(name),
         reset=reset, step=step, features=features, feature_dim=adapter.obs_dim + 1,
-        make_controller=lambda c: _observation_controller(
-            c, adapter.max_action, centre, scale, rbf_centres, rbf_width),
+        make_controller=lambda c, units=0: _observation_controller(
+            c, adapter.max_action, centre, scale, rbf_centres, rbf_width, z, starts, units),
         obs_centre=centre, obs_scale=scale, reward_fn=adapter.reward_fn, end_fn=adapter.end_fn,
         end_margin=(None if adapter.end_margin is None else
-                    lambda o: adapter.end_margin(o, jnp.asarray(scale, o.dtype))))
+                    lambda o: adapter.end_margin(o, jnp.asarray(scale, o.dtype))),
+        target=adapter.target, target_width=adapter.target_width)
 
 
 _REGISTERED: dict[str, Task] = {}

@@ -297,7 +297,7 @@ def test_the_stated_reward_of_a_task_that_states_none_is_refused_in_one_line():
     task = _linear_task()._replace(name="test:unstated", reward_fn=None)
     tasks.register(task)
     try:
-        with pytest.raises(ValueError, match="model_reward: 'stated'.*does not state"):
+        with pytest.raises(ValueError, match="model_reward: .stated. plans with what .*reward_fn"):
             C.make_config(env="test:unstated", method="gp_model", model_reward="stated")
         cfg = C.make_config(env="test:unstated", method="gp_model")
         assert MB.learns_reward(tasks.make_task(cfg.env), cfg)
@@ -600,7 +600,8 @@ def _model_study():
 def test_the_presets_hold_the_model_study_s_tuned_settings():
     """`gpguided reproduce --preset <task> --methods gp_model` runs it as the study did: the base
     settings its tuning ran from, its budget's updates and the settings the tuning chose
-    (docs/results/model/<task>/tuning.json), and the study's runs start from the preset's own.
+    (docs/results/model/<task>/tuning.json), then the planning study's
+    (docs/results/planning/<task>/tuning.json), and the study's runs start from the preset's own.
     The study reads the settings it does not search from the preset (`model_study.base`), so the
     preset's are those of the tuning record's base."""
     import json
@@ -615,13 +616,15 @@ def test_the_presets_hold_the_model_study_s_tuned_settings():
             record = json.load(f)
         chosen = record["chosen"]
         assert study.BASE[task] == pytest.approx(record["base"]), task
+        # and on top of them, the planning study's choice (experiments/planning_study.py)
         expected = {**study.BASE[task], "num_updates": study.overrides(task, {})["num_updates"],
-                    **chosen}
+                    **chosen, **study.planned(task)}
         assert C.METHOD_PRESETS[task]["gp_model"] == pytest.approx(expected), task
         if task.startswith("inverted"):
             continue  # building a brax task compiles its physics; the gymnax task checks the rest
         # a run of the study gives the config the preset gives
-        cfg = C.preset(task, method="gp_model", **study.overrides(task, chosen))
+        cfg = C.preset(task, method="gp_model",
+                       **study.overrides(task, {**chosen, **study.planned(task)}))
         assert cfg.to_json_dict() == C.preset(task, method="gp_model").to_json_dict()
 
 

@@ -11,7 +11,8 @@ roll-out:
   gp            the GP per output: the refit, the conditioning, predictions and drawn functions;
   objectives    the planning objective (`Objective`: the task's stated reward, or a learnt one);
   uncertainty   the uses of the model's uncertainty (`Uncertainty`: mean, sample, thompson,
-                optimistic) and the plan of one update's particles;
+                optimistic, optimistic_reward, optimistic_joint, information) and the plan of
+                one update's particles;
   rollout       the particle roll-outs through the model;
   optimise      the controller's optimisation (`Optimiser`: Adam, L-BFGS);
   actor         what acts in the real episodes (`Actor`: the learnt controller);

@@ -29,6 +29,8 @@ class ModelData(NamedTuple):
         current kernels, in logs.
       hallucination: (obs_dim,) controller parameters of the optimistic exploration's eta (zeros
         for the other choices).
+      observations: (C, obs_dim) the observations the decisions were taken in (the plan's
+        particles may start from them).
     """
 
     inputs: jax.Array
@@ -37,6 +39,7 @@ class ModelData(NamedTuple):
     count: jax.Array
     log_kernels: hyperfit.LogParams
     hallucination: object
+    observations: jax.Array
 
 
 def wrap(x):
@@ -95,23 +98,28 @@ def decisions(hold: int, obs, next_obs, actions, alive=None, ends=None):
 
 
 
-def empty_data(capacity: int, input_dim: int, output_dim: int, dtype, hallucination) -> ModelData:
+def empty_data(capacity: int, input_dim: int, output_dim: int, dtype, hallucination,
+               obs_dim: int = 0) -> ModelData:
     log_k = hyperfit.LogParams(jnp.zeros((output_dim, input_dim), dtype),
                                jnp.zeros((output_dim,), dtype), jnp.full((output_dim,), -4.0, dtype))
     return ModelData(jnp.zeros((capacity, input_dim), dtype), jnp.zeros((capacity, output_dim), dtype),
-                     jnp.zeros((capacity,), bool), jnp.zeros((), jnp.int32), log_k, hallucination)
+                     jnp.zeros((capacity,), bool), jnp.zeros((), jnp.int32), log_k, hallucination,
+                     jnp.zeros((capacity, obs_dim), dtype))
 
 
 
-def take_in(data: ModelData, inputs, targets, valid) -> ModelData:
-    """Writes (n, D) inputs, (n, E) targets and (n,) valid flags into the ring buffer (the oldest
-    slots first once it is full)."""
+def take_in(data: ModelData, inputs, targets, valid, observations=None) -> ModelData:
+    """Writes (n, D) inputs, (n, E) targets, (n,) valid flags and (n, obs_dim) observations (if
+    given) into the ring buffer (the oldest slots first once it is full)."""
     capacity = data.inputs.shape[0]
     slots = (data.count + jnp.arange(inputs.shape[0])) % capacity
+    obs = data.observations
+    if observations is not None and obs.shape[-1]:
+        obs = obs.at[slots].set(observations)
     return data._replace(inputs=data.inputs.at[slots].set(inputs),
                          targets=data.targets.at[slots].set(targets),
                          valid=data.valid.at[slots].set(valid),
-                         count=data.count + inputs.shape[0])
+                         count=data.count + inputs.shape[0], observations=obs)
 
 
 

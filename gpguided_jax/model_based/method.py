@@ -44,13 +44,16 @@ from gpguided_jax.model_based.data import (
 )
 from gpguided_jax.model_based.gp import build, predict, refit
 from gpguided_jax.model_based.optimise import OPTIMISERS, optimise
+from gpguided_jax.model_based.rollout import simulate
 
 RECORDS = ("model_return", "model_gain", "model_error", "model_reward_error", "model_std",
            "model_lengthscale_action", "model_data")
 
 
 @settings_lib.declare(static=("capacity", "inducing", "fit_subset", "fit_steps", "particles",
-                              "steps", "horizon", "exploration", "optimizer", "reward"),
+                              "steps", "horizon", "exploration", "optimizer", "reward",
+                              "visited_starts", "fresh_draws", "keep_best", "restarts",
+                              "held_aside"),
                       prefix="model_")
 class ModelSettings:
     """gp_model's own settings (flat names `model_<field>`).
@@ -64,15 +67,35 @@ class ModelSettings:
       steps: optimiser steps on the simulated return per update.
       horizon: the simulated roll-outs' horizon, seconds.
       exploration: the use of the model's uncertainty in them (`uncertainty.USES`: 'mean',
-        'sample', 'thompson', 'optimistic').
+        'sample', 'thompson', 'optimistic', 'optimistic_reward', 'optimistic_joint',
+        'information'; the two optimistic about the reward need it learnt).
       optimizer: the controller's optimiser (`optimise.OPTIMISERS`: 'adam', 'lbfgs').
+      visited_starts: the share of the particles that start from observations the real episodes
+        visited (drawn from the buffer), the others from the task's start distribution.
+      fresh_draws: a new plan (start states, functions, noise) at every optimiser step, where
+        False fixes one per update (common random numbers).
+      keep_best: keep the iterate with the best simulated return seen (early stopping), not the
+        last.
+      restarts: controllers optimised per update: the current one and `restarts - 1` others
+        (the initial controller perturbed by N(0, `RESTART_SCALE`^2) per parameter); the best by
+        simulated return on the held-aside particles is kept.
+      held_aside: particles of another plan on which the restarts are compared (0: the plan
+        they were optimised on).
       reward: the planning objective (`objectives.OBJECTIVES`): 'stated' (the task's
-        `reward_fn`), 'learned' (one more GP output, learnt with the dynamics), or 'auto' (stated
-        where the task states it, learned otherwise).
+        `reward_fn`), 'learned' (one more GP output, learnt with the dynamics), 'survival' (the
+        log-probability of not meeting the task's end), 'saturating' (PILCO's saturating cost on
+        the task's target), or 'auto' (stated where the task states it, learned otherwise).
 
     Traced:
       learning_rate: Adam's step size on the simulated return.
-      beta: the confidence multiple of the hallucinated control ('optimistic').
+      final_rate: the step size's cosine decay over the steps, to this fraction of the first
+        (1: constant; Adam only).
+      beta: the confidence multiple of the hallucinated control ('optimistic',
+        'optimistic_joint') and of the learnt reward's upper confidence bound
+        ('optimistic_reward', 'optimistic_joint').
+      information_weight: lambda, the weight of the information bonus lambda sum_e sigma_e^2
+        ('information'; the dynamics' epistemic variance in the normalised observation's units
+        squared), constant over a run (`uncertainty` module notes).
       end_softness: the smoothing of a task's end in the simulated roll-outs (the temperature of
         the end's probability, in units of the observation's normalisation scale).
     """
@@ -87,9 +110,16 @@ class ModelSettings:
     exploration: str = "mean"
     optimizer: str = "adam"
     reward: str = "auto"
+    visited_starts: float = 0.0
+    fresh_draws: bool = False
+    keep_best: bool = False
+    restarts: int = 1
+    held_aside: int = 0
     learning_rate: Any = 0.01
+    final_rate: Any = 1.0
     beta: Any = 1.0
     end_softness: Any = 0.1
+    information_weight: Any = 1.0
 
     def check(self, cfg) -> None:
         """Raises `settings.SettingError` naming the first setting that makes no sense."""
@@ -98,16 +128,34 @@ class ModelSettings:
                                  ("optimizer", tuple(OPTIMISERS), "model optimiser"),
                                  ("reward", objectives.names(), "model reward")):
             settings_lib.choice(flat[f], getattr(self, f), choices, what)
-        for f in ("capacity", "inducing", "fit_subset", "fit_steps", "particles", "steps"):
+        for f in ("capacity", "inducing", "fit_subset", "fit_steps", "particles", "steps",
+                  "restarts"):
             settings_lib.integer(flat[f], getattr(self, f), 1)
+        settings_lib.integer(flat["held_aside"], self.held_aside, 0)
+        for f in ("fresh_draws", "keep_best"):
+            if not isinstance(getattr(self, f), bool):
+                settings_lib.fail(flat[f], f"must be true or false, got {getattr(self, f)!r}")
+        if not (isinstance(self.visited_starts, (int, float)) and 0 <= self.visited_starts < 1):
+            settings_lib.fail(flat["visited_starts"], f"must be a share in [0, 1), got "
+                              f"{self.visited_starts!r}")
+        settings_lib.traced(flat["final_rate"], self.final_rate, positive=True)
         settings_lib.seconds(flat["horizon"], self.horizon)
         settings_lib.traced(flat["learning_rate"], self.learning_rate, positive=True)
         settings_lib.traced(flat["end_softness"], self.end_softness, positive=True)
         settings_lib.traced(flat["beta"], self.beta, non_negative=True)
-        if self.reward == objectives.STATED.name and tasks.make_task(cfg.env).reward_fn is None:
-            settings_lib.fail(flat["reward"], f"'stated' plans with the task's reward as a "
-                              f"function of the transition, which {cfg.env} does not state "
-                              f"(tasks.Task.reward_fn); 'learned' or 'auto' learns it")
+        settings_lib.traced(flat["information_weight"], self.information_weight,
+                            non_negative=True)
+        task = tasks.make_task(cfg.env)
+        objective = objectives.for_task(task, self.reward)
+        if uncertainty.get(self.exploration).reward_optimism and not objective.learned:
+            settings_lib.fail(flat["exploration"], f"{self.exploration!r} is optimistic about a "
+                              f"learnt reward, and {cfg.env} plans with {objective.name!r}: set "
+                              "model_reward='learned'")
+        lacks = objectives.missing(task, objective)
+        if lacks is not None:
+            hint = "; 'learned' or 'auto' learns the reward" if objective is objectives.STATED else ""
+            settings_lib.fail(flat["reward"], f"{self.reward!r} plans with what {cfg.env} does "
+                              f"not declare: {lacks}{hint}")
 
 
 # The settings gp_model was tuned to, per preset (`Method.presets`): experiments/model_study.py,
@@ -140,6 +188,24 @@ PRESETS = {
 }
 
 
+# The presets of experiments/exploration_uses_study.py: the car and the swing-up with the reward
+# learnt (the config presets set `model_reward`), the sparse swing-up at each action cost. Their
+# settings are placeholders until that study's tuning chooses them: the model study's preset of
+# the same task (the sparse swing-up: Pendulum-v1's, its 20 learning episodes and roll-outs long
+# enough to swing up in), under the use each study is about, at beta 1.
+PRESETS.update({
+    "mountaincar-continuous-learned": {**PRESETS["mountaincar-continuous"],
+                                       "model_exploration": "optimistic_reward",
+                                       "model_beta": 1.0},
+    "swingup-learned": {**PRESETS["swingup"], "model_exploration": "optimistic_reward",
+                        "model_beta": 1.0},
+    **{f"pendulum-sparse-{c:g}": {**PRESETS["pendulum-v1"], "num_updates": 21,
+                                  "model_horizon": 4.0, "model_exploration": "optimistic",
+                                  "model_beta": 1.0}
+       for c in tasks.SPARSE_PENDULUM_COSTS},
+})
+
+
 def learns_reward(task, cfg) -> bool:
     """Whether gp_model learns the task's reward under `cfg`'s settings (`ModelSettings.reward`)."""
     return objectives.for_task(task, cfg.settings.reward).learned
@@ -168,7 +234,7 @@ def init(prog, key, cfg) -> ModelData:
     zeros = prog.controller.init(prog.dtype)
     hallucination = jax.tree_util.tree_map(lambda a: jnp.zeros((task.obs_dim,) + a.shape, a.dtype), zeros)
     outputs = task.obs_dim + learns_reward(task, cfg)
-    return empty_data(capacity, task.feature_dim, outputs, prog.dtype, hallucination)
+    return empty_data(capacity, task.feature_dim, outputs, prog.dtype, hallucination, task.obs_dim)
 
 
 def make_update(actor: Actor = LEARNT_CONTROLLER):
@@ -246,18 +312,63 @@ def model_errors(prog, cfg, data: ModelData, tr: Transitions):
     return model_error, _relative_error(reward_pred, tr.rewards, tr.valid)
 
 
-def improve(prog, cfg, model, target_mean, key, controller_params, hallucination):
+RESTART_SCALE = 0.5  # the restarts' perturbation of the initial controller, per parameter
+
+
+def improve(prog, cfg, model, target_mean, key, controller_params, hallucination, visited=None):
     """The controller's optimisation through the model: the update's plan (`make_plan`, under the
-    settings' use of the uncertainty) and the optimiser's steps on its simulated return
-    (`optimise`). Returns (params, hallucination, return before, return after)."""
+    settings' use of the uncertainty, its particles started from the start distribution and
+    the `visited` observations, (obs, valid)) and the optimiser's steps on its simulated return
+    (`optimise`), from the current controller and the settings' restarts, the best kept by its
+    return on held-aside particles. Returns (params, hallucination, return before, return after)
+    of the kept controller, on the plan."""
     own = cfg.settings
     use = uncertainty.get(own.exploration)
-    plan = uncertainty.make_plan(prog, cfg, model, key, use, own.particles, plan_steps(prog, cfg))
-    return optimise(
-        prog, model, target_mean, plan, controller_params, hallucination,
-        num_steps=own.steps, learning_rate=own.learning_rate, beta=own.beta,
-        optimistic=use.hallucinates, optimizer=own.optimizer, end_softness=own.end_softness,
-        objective=objectives.for_task(prog.task, own.reward))
+    steps = plan_steps(prog, cfg)
+
+    def plan_of(k, n=own.particles):
+        n_visited = 0 if visited is None else int(round(own.visited_starts * n))
+        return uncertainty.make_plan(prog, cfg, model, k, use, n, steps, visited, n_visited)
+
+    k_plan, k_fresh, k_restart, k_aside = jax.random.split(key, 4)
+    # the default search keeps the update's key as its plan's (the records of a run without the
+    # search's options are those of the method before them)
+    plan = plan_of(key if own.restarts == 1 and not own.fresh_draws else k_plan)
+    fresh = (lambda i: plan_of(jax.random.fold_in(k_fresh, i))) if own.fresh_draws else None
+    objective = objectives.for_task(prog.task, own.reward)
+
+    def run(params):
+        return optimise(
+            prog, model, target_mean, plan, params, hallucination,
+            num_steps=own.steps, learning_rate=own.learning_rate, beta=own.beta,
+            optimistic=use.hallucinates, optimizer=own.optimizer, end_softness=own.end_softness,
+            objective=objective, final_rate=own.final_rate, fresh_plan=fresh,
+            keep_best=own.keep_best)
+
+    if own.restarts == 1:
+        return run(controller_params)
+    zeros = prog.controller.init(prog.dtype)
+    leaves, treedef = jax.tree_util.tree_flatten(zeros)
+    keys = jax.random.split(k_restart, len(leaves))
+
+    def perturbed(leaf, k):
+        eps = jax.random.normal(k, (own.restarts - 1,) + leaf.shape, leaf.dtype)
+        return leaf[None] + RESTART_SCALE * eps
+
+    others = jax.tree_util.tree_unflatten(treedef, [perturbed(x, k) for x, k in zip(leaves, keys)])
+    starts = jax.tree_util.tree_map(lambda c, o: jnp.concatenate([c[None], o]),
+                                    controller_params, others)
+    params, halluc, before, after = jax.vmap(run)(starts)
+    if own.held_aside:
+        aside = plan_of(k_aside, own.held_aside)
+        score = jax.vmap(lambda c, h: simulate(
+            prog, model, target_mean, aside, c, h if use.hallucinates else None, own.beta,
+            own.end_softness, objective))(params, halluc)
+    else:
+        score = after
+    best = jnp.argmax(jnp.where(jnp.isfinite(score), score, -jnp.inf))
+    pick = lambda t: jax.tree_util.tree_map(lambda x: x[best], t)  # noqa: E731
+    return pick(params), pick(halluc), before[0], after[best]
 
 
 def _update(prog, cfg, state, batch, actor: Actor):
@@ -269,12 +380,13 @@ def _update(prog, cfg, state, batch, actor: Actor):
     k_fit, k_plan = model_keys(state)
     first = data.count == 0
     model_error, model_reward_error = model_errors(prog, cfg, data, tr)
-    data = take_in(data, tr.inputs, tr.targets, tr.valid)
+    data = take_in(data, tr.inputs, tr.targets, tr.valid, tr.obs)
     data = data._replace(log_kernels=refit(k_fit, data, subset_size=own.fit_subset,
                                            num_steps=own.fit_steps, first=first))
     model, target_mean = build(data, own.inducing)
     params, halluc, before, after = improve(prog, cfg, model, target_mean, k_plan,
-                                            state.theta.controller, data.hallucination)
+                                            state.theta.controller, data.hallucination,
+                                            (data.observations, data.valid))
     data = data._replace(hallucination=halluc)
     theta = actor.act_with(prog, cfg, state.theta, params)
     kern = jax.vmap(hyperfit.from_log)(data.log_kernels)

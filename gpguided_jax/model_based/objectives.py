@@ -9,9 +9,18 @@ An `Objective` is a value passed to the roll-out (`rollout.simulate`), not a bra
            (its control steps' rewards summed), in the same buffer, refit and conditioning as the
            dynamics' outputs. The roll-out reads a decision's reward from that output (its mean,
            or the particle's drawn function).
+  SURVIVAL the log-probability of surviving, sum_t log(1 - p_end,t), with the end's smoothed
+           probability p_end = sigmoid(margin / end_softness) from the task's own end condition
+           (`Task.end_margin`). Where every particle survives, the 0/1 survival reward is flat and
+           its gradient 0; this one's is -p_end / end_softness per step, never 0.
+  SATURATING PILCO's saturating cost on the target the task declares (`Task.target`,
+           `Task.target_width` sigma_c): a decision earns hold * exp(-|d|^2 / (2 sigma_c^2)),
+           1 less pilco-matlab's `lossSat` cost, at the decision's end (1 - cost, not -cost, so
+           that an episode's end loses what the rest would have earned, as the task's own
+           survival reward does).
 
-A new objective (a cost on a declared target, a survival margin) is a new `Objective`, added to
-`OBJECTIVES` under its name.
+The evaluation is always the task's own reward, whichever objective planned. A new objective is a
+new `Objective`, added to `OBJECTIVES` under its name.
 """
 
 from __future__ import annotations
@@ -32,11 +41,18 @@ class Objective(NamedTuple):
         reward from its transition, the probability (or indicator) that it ends the episode
         (None for a task that never ends early) and the model's outputs at the decision's input
         (the particle's function, with the learnt reward last when `learned`).
+      alive_weighted: whether the roll-out weighs a decision's reward by the particle's
+        probability of being alive when it is taken (False: the objective accounts for the end
+        itself, as SURVIVAL's log-probability does).
+      needs: what the task must declare for it: (attribute of `Task`, what it is), each checked
+        before a run starts.
     """
 
     name: str
     learned: bool
     reward: Callable
+    alive_weighted: bool = True
+    needs: tuple = ()
 
 
 def stated_reward(task, hold: int, obs, action, nxt, end=None):
@@ -62,9 +78,31 @@ def _learned(task, hold, obs, action, nxt, p_end, outputs):
     return outputs[task.obs_dim]
 
 
-STATED = Objective("stated", False, _stated)
+def saturating_cost(d, width):
+    """pilco-matlab's `lossSat` at a known state: 1 - exp(-d^T W d / 2), W = I / width^2, for the
+    displacement d from the target."""
+    return 1.0 - jnp.exp(-0.5 * jnp.sum(d * d) / width ** 2)
+
+
+def _survival(task, hold, obs, action, nxt, p_end, outputs):
+    del task, hold, obs, action, nxt, outputs
+    # log(1 - p): p < 1 in exact arithmetic, but it rounds to 1 for a far-gone particle
+    return jnp.log1p(-jnp.minimum(p_end, 1.0 - jnp.finfo(p_end.dtype).eps))
+
+
+def _saturating(task, hold, obs, action, nxt, p_end, outputs):
+    del obs, action, p_end, outputs
+    return hold * (1.0 - saturating_cost(task.target(nxt), task.target_width))
+
+
+STATED = Objective("stated", False, _stated, needs=(("reward_fn", "its reward as a function of "
+                                                    "the transition"),))
 LEARNED = Objective("learned", True, _learned)
-OBJECTIVES: dict[str, Objective] = {o.name: o for o in (STATED, LEARNED)}
+SURVIVAL = Objective("survival", False, _survival, alive_weighted=False,
+                     needs=(("end_margin", "the signed margin of its end condition"),))
+SATURATING = Objective("saturating", False, _saturating,
+                       needs=(("target", "a target, the displacement from it in its units"),))
+OBJECTIVES: dict[str, Objective] = {o.name: o for o in (STATED, LEARNED, SURVIVAL, SATURATING)}
 AUTO = "auto"  # the task's stated reward where it states one, else the learnt one
 
 
@@ -79,3 +117,12 @@ def for_task(task, reward: str) -> Objective:
     if reward == AUTO:
         return LEARNED if task.reward_fn is None else STATED
     return OBJECTIVES[reward]
+
+
+def missing(task, objective: Objective) -> str | None:
+    """What `task` lacks for `objective`, as a phrase naming the `Task` attribute to add (None:
+    nothing)."""
+    for attr, what in objective.needs:
+        if getattr(task, attr) is None:
+            return f"tasks.Task.{attr}: {what}"
+    return None

@@ -3,8 +3,9 @@
 `simulate` steps every particle of a `Plan` through the model with the controller, one decision
 of `prog.hold` control steps at a time, and sums the planning objective's rewards (`Objective`),
 each weighed by the particle's probability of being alive. The objective and the use of the
-model's uncertainty are values it is given (the plan's functions, noise and variance factors,
-and `hallucination`), so that neither is a branch on a name here.
+model's uncertainty are values it is given (the plan's functions, noise, variance factors,
+reward bonus and information weight, and `hallucination`), so that neither is a branch on a name
+here.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import jax.numpy as jnp
 from gpguided_jax.model_based import objectives
 from gpguided_jax.model_based.data import next_of
 from gpguided_jax.model_based.gp import SparseModel, fast_variance, k_star
-from gpguided_jax.model_based.uncertainty import Plan
+from gpguided_jax.model_based.uncertainty import Plan, information_bonus, optimistic_outputs
 
 
 def objective_of(prog) -> objectives.Objective:
@@ -33,11 +34,15 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
     the hard end's is 0 (its reward, where the end enters it, takes that probability too); a task
     with only `end_fn` ends hard. `hallucination`: eta's controller parameters, (E,)-batched (a
     hallucinating use of the uncertainty). `objective`: an `objectives.Objective` (default: the
-    program's, `objective_of`)."""
+    program's, `objective_of`). A plan with a `reward_bonus` beta raises the learnt reward to its
+    upper confidence bound r + beta sigma_r before the objective reads it; one with an
+    `information` weight lambda adds lambda sum_e sigma_e^2 of the dynamics' outputs to each
+    decision's reward, weighed by the particle's probability of being alive when it is taken
+    (`uncertainty.optimistic_outputs`, `information_bonus`)."""
     task, controller = prog.task, prog.controller
     if hallucination is not None and plan.variance is None:
         raise ValueError("an optimistic roll-out reads the model's variance factors: make its plan "
-                         "with exploration 'optimistic'")
+                         "with a hallucinating use of the uncertainty ('optimistic')")
     objective = objective_of(prog) if objective is None else objective
     noise_std = jnp.sqrt(model.kernels.noise_variance)  # (E,)
     hold, e = prog.hold, task.obs_dim
@@ -54,17 +59,21 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
             x = task.features(obs, a)
             ks = k_star(model, x)
             out = jnp.sum(ks * w, axis=-1) + target_mean
+            var = None if plan.variance is None else fast_variance(model, plan.variance, ks)
             delta = out[:e] + noise_std[:e] * eps_t[:e]
             if hallucination is not None:
-                var = fast_variance(model, plan.variance, ks)[:e]
                 eta = jax.vmap(lambda p: controller.apply(p, obs))(hallucination) / controller.u_max
-                delta = delta + beta * jnp.sqrt(var) * eta
+                delta = delta + beta * jnp.sqrt(var[:e]) * eta
+            if plan.reward_bonus is not None:
+                out = optimistic_outputs(out, var, e, plan.reward_bonus)
             nxt = next_of(task, obs, delta)
             p_end = None if task.end_fn is None else end_probability(nxt)
             r = objective.reward(task, hold, obs, a, nxt, p_end, out)
-            if p_end is None:
-                return (nxt, alive), r
-            return (nxt, alive * (1.0 - p_end)), alive * r
+            if p_end is not None and objective.alive_weighted:
+                r = alive * r
+            if plan.information is not None:
+                r = r + alive * information_bonus(var, e, plan.information)
+            return (nxt, alive if p_end is None else alive * (1.0 - p_end)), r
 
         _, rewards = jax.lax.scan(step, (obs0, jnp.ones((), obs0.dtype)), eps)
         return jnp.sum(rewards)

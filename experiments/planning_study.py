@@ -1,0 +1,253 @@
+"""gp_model's planning parts on the five tasks: which objective, controller and search bring it to
+each task's threshold, by the protocol of `gpguided_jax.study`, extending the model study
+(experiments/model_study.py: its budgets, settings, measures, held-out seeds and table rows).
+
+Today's gp_model is the model study's tuned configuration (docs/results/model/<task>/tuning.json).
+The parts (`gpguided_jax.model_based`; docs/design.md#model):
+
+  objective   'survival' (the log-probability of not meeting the task's end) and 'saturating'
+              (PILCO's saturating cost on the task's declared target) beside the stated reward;
+  controller  'rbf_trainable' (centres, widths and weights trained), 'linear_rbf' and 'linear'
+              beside today's fixed-centre 'rbf';
+  particles   64 particles, half of them started from visited states;
+  fresh       a fresh plan at every optimiser step (no common random numbers);
+  longer      twice the optimiser steps, the rate decayed to a tenth, the best iterate kept;
+  restarts    4 controllers per update (the current one and 3 perturbed), the best on 32
+              held-aside particles kept.
+
+Stages, per task; each writes under --out (default docs/results/planning/<task>):
+
+``ablate``  Tuning seeds (100, 101; never reported): today's configuration, then each part's
+            variants added to it one at a time (`PARTS`, written before any run). The score is
+            the model study's (the measure over the second half of the budget). Writes
+            ablation.json (resumed part by part).
+``search``  Every part whose best variant beat today's score, combined, then a coordinate search
+            around the combination (`SEARCH`). Writes tuning.json; its `chosen` is the preset's.
+``heldout`` The chosen configuration on the held-out seeds (1000-1009; 1000-1019 for the
+            swing-up). Writes heldout/chosen.npz and .json.
+``report``  heldout_table.json: seeds reaching the threshold, environment steps and wall time to
+            it, and the objective planned with, beside today's gp_model (the model study's
+            held-out run of its tuned choice), SAC and PPO; and the figure.
+
+Usage:
+  python experiments/planning_study.py ablate --task inverted-pendulum
+  python experiments/planning_study.py search --task inverted-pendulum
+  python experiments/planning_study.py heldout --task inverted-pendulum
+  python experiments/planning_study.py report --task inverted-pendulum
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import model_study as MS  # noqa: E402
+import numpy as np  # noqa: E402
+
+from gpguided_jax import study  # noqa: E402
+
+ROOT = MS.ROOT
+METHOD = MS.METHOD
+TASKS = MS.TASKS
+
+_CONTROLLERS = [{"controller": c} for c in ("rbf_trainable", "linear_rbf", "linear")]
+_SEARCH_PARTS = {
+    "particles": [{"model_particles": 64, "model_visited_starts": 0.5}],
+    "fresh": [{"model_fresh_draws": True}],
+    "longer": [{"model_steps": "x2", "model_final_rate": 0.1, "model_keep_best": True}],
+    "restarts": [{"model_restarts": 4, "model_held_aside": 32}],
+}
+# (part, its variants) per task, each variant added alone to today's configuration. The
+# objectives a task can plan with: survival where it ends (brax's pendulums; the car's end is its
+# goal, not a failure), the saturating cost where it declares a target (all five).
+PARTS = {
+    "inverted-pendulum": {"objective": [{"model_reward": "survival"},
+                                        {"model_reward": "saturating"}],
+                          "controller": _CONTROLLERS, **_SEARCH_PARTS},
+    # a run costs ten times the single pendulum's here: the objectives and one controller
+    "inverted-double-pendulum": {"objective": [{"model_reward": "survival"},
+                                               {"model_reward": "saturating"}],
+                                 "controller": _CONTROLLERS[1:2]},
+    "swingup": {"objective": [{"model_reward": "saturating"}],
+                "controller": _CONTROLLERS[:2], **_SEARCH_PARTS},
+    "pendulum-v1": {"objective": [{"model_reward": "saturating"}],
+                    "controller": _CONTROLLERS[:2], **_SEARCH_PARTS},
+    "mountaincar-continuous": {"objective": [{"model_reward": "saturating"}],
+                               "controller": _CONTROLLERS[:2], **_SEARCH_PARTS},
+}
+# the search around the combination: the simulated horizon (x 1/2, x 2) and the end's smoothing
+SEARCH = {task: [("model_horizon", ["x0.5", "x2"])] for task in TASKS}
+for _task in ("inverted-pendulum", "inverted-double-pendulum"):
+    SEARCH[_task] = SEARCH[_task] + [("model_end_softness", [0.3, 1.0])]
+
+
+def today(task: str) -> dict:
+    """The model study's tuned settings of `task` (its `chosen`)."""
+    path = os.path.join(ROOT, "docs", "results", "model", task, "tuning.json")
+    return study.read_json(path)["chosen"]
+
+
+def resolve(task: str, settings: dict) -> dict:
+    """Settings with their relative values ('x2': twice today's) made absolute."""
+    base = MS.overrides(task, today(task))
+    defaults = MS.config_lib.preset(task, method=METHOD, **base)
+    out = {}
+    for k, v in settings.items():
+        if isinstance(v, str) and v.startswith("x"):
+            v = type(defaults.value(k))(defaults.value(k) * float(v[1:]))
+        out[k] = v
+    return out
+
+
+def _evaluate(task: str, out: str, settings: dict) -> dict:
+    """One configuration on the tuning seeds (kept in runs.json as it finishes): its score, and
+    per seed the environment steps to the threshold and its wall seconds."""
+    runs_path = os.path.join(out, "runs.json")
+    full = MS.overrides(task, {**today(task), **resolve(task, settings)})
+    key = json.dumps(full, sort_keys=True)
+    done = study.read_json(runs_path, {})
+    if key not in done:
+        record, level, _ = MS.measure(task)
+        cfg = MS.config_lib.preset(task, method=METHOD, **full)
+        steps = study.env_steps(cfg)
+
+        def score(records):
+            ret = np.asarray(records[record], float)
+            reach = study.steps_to(steps, ret, level, never=np.nan)
+            return {**MS.score_of(task)(records),
+                    "steps_to": [None if np.isnan(v) else int(v) for v in reach]}
+
+        start = time.perf_counter()
+        result = study.sweep_stage([full], score, method=METHOD, preset=task,
+                                   seeds=study.TUNING_SEEDS, progress=study.log)[0]
+        result["wall_s"] = time.perf_counter() - start
+        done = study.read_json(runs_path, {})
+        done[key] = result
+        study.write_json(runs_path, done)
+    return done[key]
+
+
+def ablate(task: str, out: str) -> None:
+    path = os.path.join(out, "ablation.json")
+    rows = [{"part": "today", "settings": {}, **_evaluate(task, out, {})}]
+    study.log(f"[{task}] today: {rows[0]}")
+    for part, variants in PARTS[task].items():
+        for v in variants:
+            rows.append({"part": part, "settings": v, **_evaluate(task, out, v)})
+            study.log(f"[{task}] {part} {v}: {rows[-1]}")
+            study.write_json(path, {"task": task, "seeds": list(study.TUNING_SEEDS),
+                                    "today": today(task), "parts": PARTS[task], "rows": rows})
+    study.write_json(path, {"task": task, "seeds": list(study.TUNING_SEEDS),
+                            "today": today(task), "parts": PARTS[task], "rows": rows})
+
+
+def combined(task: str, out: str) -> dict:
+    """Per part, its best variant where it beat today's score, all together."""
+    rows = study.read_json(os.path.join(out, "ablation.json"))["rows"]
+    base = rows[0]["score"]
+    out_settings = {}
+    for part in PARTS[task]:
+        best = max((r for r in rows if r["part"] == part), key=lambda r: r["score"])
+        if best["score"] > base:
+            out_settings.update(best["settings"])
+    return out_settings
+
+
+def search(task: str, out: str) -> None:
+    start = combined(task, out)
+    result = study.search_beyond(start, SEARCH[task],
+                                 lambda configs: [_evaluate(task, out, c) for c in configs],
+                                 log=study.log)
+    chosen = resolve(task, result["chosen"])
+    study.write_json(os.path.join(out, "tuning.json"), {
+        "task": task, "seeds": list(study.TUNING_SEEDS), "today": today(task),
+        "combined": start, "grid": SEARCH[task], **result, "chosen": chosen})
+    study.log(f"[{task}] chosen: {chosen}")
+
+
+def heldout(task: str, out: str) -> None:
+    chosen = study.read_json(os.path.join(out, "tuning.json"))["chosen"]
+    seeds = MS.heldout_seeds(task)
+    settings = {**today(task), **chosen}
+    meta = {"seeds": seeds, "settings": settings}
+    path = os.path.join(out, "heldout", "chosen")
+    if study.finished(path + ".json", **meta):
+        study.log(f"[{task}] done with these seeds and settings: {path}.json")
+        return
+    run = study.run_method(task, METHOD, seeds, os.path.join(out, "runs", "chosen"),
+                           MS.overrides(task, settings), chunk_size=1)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    np.savez(path + ".npz", steps=run.env_steps, measure=run.records[MS.measure(task)[0]],
+             model_error=run.records["model_error"], model_return=run.records["model_return"])
+    study.write_json(path + ".json", {**meta, "wall_s": run.wall_s})
+
+
+def objective_of(settings: dict) -> str:
+    return settings.get("model_reward", "stated")
+
+
+def report(task: str, out: str) -> None:
+    record, threshold, measure_name = MS.measure(task)
+    path = os.path.join(out, "heldout", "chosen")
+    meta = study.read_json(path + ".json")
+    seeds = meta["seeds"]
+    with np.load(path + ".npz") as f:
+        steps, ret = f["steps"], np.asarray(f["measure"], float)
+    rows = [{**MS._row("gp_model (planning parts)", steps, ret, threshold, meta["wall_s"], seeds),
+             "objective": objective_of(meta["settings"]), "settings": meta["settings"]}]
+    curves = {rows[0]["method"]: (steps, ret)}
+    choice = today(task).get("model_exploration", "mean")
+    old = os.path.join(ROOT, "docs", "results", "model", task, "heldout", choice)
+    if os.path.exists(old + ".npz"):
+        with np.load(old + ".npz") as f:
+            curves["gp_model (today)"] = (f["steps"], np.asarray(f["measure"], float))
+        old_meta = study.read_json(old + ".json")
+        if old_meta["seeds"] == seeds:
+            rows.append({**MS._row("gp_model (today)", *curves["gp_model (today)"], threshold,
+                                   old_meta["wall_s"], seeds), "objective": "stated"})
+    others = MS._others(task, seeds)
+    for name in MS.BESIDE:
+        if name in others:
+            s, r, wall = others[name]
+            rows.append({**MS._row(name, s, r, threshold, wall, seeds), "objective": "task's reward"})
+            curves[name] = (s, r)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name, (s, r) in curves.items():
+        study.plot_band(ax, s, r, label=name, ls="-" if name.startswith("gp_model") else ":")
+    ax.axhline(threshold, color="k", ls="--", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_xlabel("environment steps (log)")
+    ax.set_ylabel(f"{measure_name} of the deterministic policy")
+    ax.set_title(f"{task}: {len(seeds)} held-out seeds (mean, 95% t-band)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    figure = os.path.join(ROOT, "docs", "figures", f"planning_{task}.png")
+    fig.savefig(figure, dpi=110)
+    plt.close(fig)
+    study.write_json(os.path.join(out, "heldout_table.json"), {
+        "task": task, "threshold": threshold, "measure": measure_name, "seeds": seeds,
+        "budget": MS.BUDGETS[task], "rows": rows})
+    study.log(f"wrote {figure} and {out}/heldout_table.json")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("stage", choices=("ablate", "search", "heldout", "report"))
+    p.add_argument("--task", choices=TASKS, default="inverted-pendulum")
+    p.add_argument("--out", default=None)
+    args = p.parse_args(argv)
+    out = study.set_up(args.out or os.path.join(ROOT, "docs", "results", "planning", args.task))
+    {"ablate": ablate, "search": search, "heldout": heldout, "report": report}[args.stage](
+        args.task, out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
