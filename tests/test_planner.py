@@ -190,6 +190,7 @@ def test_gp_mpc_s_settings_extend_gp_model_s_by_their_flat_names():
     for bad, match in ((dict(mpc_elites=17), "mpc_elites: must be at most mpc_samples"),
                        (dict(mpc_planner="random"), "mpc_planner: unknown planner"),
                        (dict(mpc_horizon=0.0), "mpc_horizon: must be > 0"),
+                       (dict(mpc_noise_exponent=4.0), "mpc_noise_exponent: must be in"),
                        (dict(mpc_temperature=-1.0), "mpc_temperature: must be > 0"),
                        (dict(model_particles=0), "model_particles: must be a positive")):
         with pytest.raises(ValueError, match=match):
