@@ -25,7 +25,9 @@ and its own records. Everything else a driver needs is declared:
                   default, Fig. 5).
 
   settings        the class of its own settings (`gpguided_jax.settings.declare`), or None;
-  presets         the settings it was tuned to, per preset.
+  presets         the settings it was tuned to, per preset;
+  context         what its policy reads in the roll-outs, made from the method's state (a
+                  planner's model); by default the Q-GP's.
 
 `train`, `reproduce`, `sweep`, the summaries and the studies read these declarations; none of them
 compares a method's name to a string. The paper's four methods are declared in
@@ -90,6 +92,9 @@ class Method(NamedTuple):
       policy_optimiser: its update takes the shared optax ascent step on the policy's parameters
         (`TrainState.opt_state`, `policy_gradient.make_optimizer`); False: it keeps no optimiser
         state (`()`).
+      context: `context(prog, cfg, state) -> ctx`, what its policy reads in an update's
+        roll-outs, made from the update's `TrainState` (a planner's model, built from the
+        method's state); None: the Q-GP's `rollouts.policy_context`.
     """
 
     name: str
@@ -109,6 +114,7 @@ class Method(NamedTuple):
     settings: type | None = None
     presets: dict[str, dict] = {}
     policy_optimiser: bool = True
+    context: Callable[..., Any] | None = None
 
     @property
     def uses_gp(self) -> bool:
@@ -135,9 +141,11 @@ def register(method: Method, *, replace: bool = False) -> Method:
         raise ValueError(f"method {method.name!r}: a prior needs the fields its fit reads")
     if method.name in _REGISTRY and not replace:
         raise ValueError(f"method {method.name!r} is already registered")
-    if method.settings is not None:  # another class may not take its flat names (one may share it)
+    if method.settings is not None:  # another class may not take its flat names (one may share
+        # it, or extend it: a subclass keeps its base's flat names)
+        related = lambda c: issubclass(c, method.settings) or issubclass(method.settings, c)  # noqa: E731
         taken = {f: m.name for m in _REGISTRY.values() if m.name != method.name and m.settings
-                 and m.settings is not method.settings for f in m.settings.FLAT.values()}
+                 and not related(m.settings) for f in m.settings.FLAT.values()}
         clash = sorted(set(method.settings.FLAT.values()) & set(taken))
         if clash:
             raise ValueError(f"method {method.name!r}: settings {clash} are already "
@@ -204,7 +212,7 @@ def shares_program(a: Method, b: Method) -> bool:
     """Whether two methods can be branches of one compiled program (`train.make_methods_train`):
     the same prior, initial state, improvement step and GP targets; only their policies differ."""
     return (a.prior == b.prior and a.init is b.init and a.update is b.update
-            and a.targets is b.targets)
+            and a.targets is b.targets and a.context is b.context)
 
 
 def setting_owners() -> dict[str, tuple[str, ...]]:

@@ -127,6 +127,10 @@ class Policy(NamedTuple):
       reads_gp: whether the policy reads the GP in `ctx` (static). One that does not acts the
         same whatever the GP has taken in, so a training loop may roll out all episodes of an
         update at once, before the GP takes any of them in.
+      memory: `memory(theta, ctx) -> m`, the policy's memory at an episode's start (a pytree of
+        fixed shapes, carried from one decision to the next: a planner's previous plan); with
+        one, `act` takes it last and returns the next one last, `act(key, theta, state, ctx, m)
+        -> (action, aux, score, std, m)`. None: a memoryless policy (the three here).
     """
 
     sample: Callable[..., tuple[jax.Array, PolicyAux]]
@@ -137,6 +141,7 @@ class Policy(NamedTuple):
     name: str
     reads_gp: bool = True
     gaussian: Callable[..., tuple] | None = None
+    memory: Callable[..., Any] | None = None
 
 
 def init_params(controller: controllers_lib.Controller, log_std: float = 0.0, dtype=None):
@@ -625,6 +630,23 @@ def gibbs_policy(controller: controllers_lib.Controller, num_candidates: int = 3
 
 
 POLICY_NAMES = ("fixed_noise", "guided_variance", "gibbs")
+
+# Policies that other modules make (a planner that acts, `gpguided_jax.model_based.planner`), by
+# name: `make(prog) -> Policy` from the `rollouts.Program` the policy acts in (its task,
+# controller, hold and config; its `policy` not yet set).
+_MADE_ELSEWHERE: dict[str, Callable[..., Policy]] = {}
+
+
+def register(name: str, make: Callable[..., Policy]) -> None:
+    """Makes the policy that `make(prog)` builds a roll-out policy by `name` (`Method.policy`)."""
+    if name in POLICY_NAMES or name == "guided_direction":
+        raise ValueError(f"the policy name {name!r} is taken by a built-in policy")
+    _MADE_ELSEWHERE[name] = make
+
+
+def made_elsewhere(name: str) -> Callable[..., Policy] | None:
+    """The `make(prog)` registered under `name`, or None for a built-in policy's name."""
+    return _MADE_ELSEWHERE.get(name)
 
 
 def make_policy(

@@ -87,7 +87,8 @@ def make_program(cfg: TrainConfig) -> Program:
     method = methods.get(cfg.method)
     task = tasks.make_task(cfg.env)
     controller = make_controller(cfg)
-    policy = policies.make_policy(
+    make_elsewhere = policies.made_elsewhere(method.policy)  # a planner: made from the program
+    policy = None if make_elsewhere else policies.make_policy(
         method.policy, controller, num_candidates=cfg.num_candidates,
         features=task.features, optimism=cfg.optimism)
     dt = control_interval(cfg)
@@ -96,8 +97,9 @@ def make_program(cfg: TrainConfig) -> Program:
         cfg.exploration, exploration.num_decisions(cfg.episode_length, hold), hold * dt,
         correlation_time=cfg.noise_correlation_time, exponent=cfg.noise_exponent,
         resample_time=cfg.noise_resample_time)
-    return Program(cfg, controller, policy, policies.make_policy("fixed_noise", controller), task,
+    prog = Program(cfg, controller, policy, policies.make_policy("fixed_noise", controller), task,
                    hold, noise, method)
+    return prog if make_elsewhere is None else prog._replace(policy=make_elsewhere(prog))
 
 
 def features(prog: Program, states, actions):
@@ -129,10 +131,12 @@ def policy_context(cfg: TrainConfig, gp, kernel) -> policies.PolicyContext | Non
 
 
 def run_episode(prog: Program, key, act, cfg: TrainConfig, num_steps: int, hold: int = 1,
-                xs=None, restart: bool = False):
+                xs=None, restart: bool = False, memory=None):
     """One episode of `num_steps` steps of the task, acting with `act(key, obs) -> (action, out)`
     (`act(key, obs, x)` with x the decision's entry of `xs`, if given) every `hold` steps and
-    holding the action in between.
+    holding the action in between. With a policy's `memory` (its value at the episode's start),
+    `act(key, obs[, x], memory) -> (action, out, memory)` carries it from one decision to the
+    next (through restarts too).
 
     Returns (obs, next_obs, actions, rewards, alive, outs): the first four with a leading
     (num_steps,) axis, `alive` (num_steps,) bool or None for a task that never ends early, and
@@ -145,7 +149,7 @@ def run_episode(prog: Program, key, act, cfg: TrainConfig, num_steps: int, hold:
     task = prog.task
     key_reset, key_steps = jax.random.split(key)
     env_state, obs = task.reset(key_reset, cfg)
-    call = (lambda k, o, x: act(k, o)) if xs is None else act
+    call = (lambda k, o, x, *m: act(k, o, *m)) if xs is None else act
 
     def env_step(carry, key_env, a):
         env_state, obs, alive = carry
@@ -164,21 +168,25 @@ def run_episode(prog: Program, key, act, cfg: TrainConfig, num_steps: int, hold:
                  alive & ~done)
         return carry, (obs, carry[1], jnp.where(alive, r, jnp.zeros_like(r)), alive)
 
-    def decide(carry, key_and_x):
+    def decide(carry_and_memory, key_and_x):
+        carry, mem = carry_and_memory
         step_key, x = key_and_x
         key_act, key_env = jax.random.split(step_key)
-        a, out = call(key_act, carry[1], x)
+        if memory is None:
+            a, out = call(key_act, carry[1], x)
+        else:
+            a, out, mem = call(key_act, carry[1], x, mem)
         if hold == 1:
             carry, per_step = env_step(carry, key_env, a)
-            return carry, (per_step, a, out)
+            return (carry, mem), (per_step, a, out)
         carry, per_step = jax.lax.scan(lambda c, k: env_step(c, k, a), carry,
                                        jax.random.split(key_env, hold))
-        return carry, (per_step, a, out)
+        return (carry, mem), (per_step, a, out)
 
     n = exploration.num_decisions(num_steps, hold)
     keys = jax.random.split(key_steps, n)
     _, ((o, o_next, r, alive), a, out) = jax.lax.scan(
-        decide, (env_state, obs, jnp.ones((), bool)), (keys, xs))
+        decide, ((env_state, obs, jnp.ones((), bool)), memory), (keys, xs))
     if hold > 1:
         steps = lambda v: v.reshape((n * hold,) + v.shape[2:])[:num_steps]  # noqa: E731
         o, o_next, r, alive = map(steps, (o, o_next, r, alive))
@@ -209,7 +217,14 @@ def rollout(prog: Program, key, theta, ctx, policy, cfg: TrainConfig) -> Episode
     deciding every `prog.hold` steps with the exploration noise `prog.noise`."""
     hold, noise, length = prog.hold, prog.noise, prog.config.episode_length
     restart = prog.config.episode_end == "restart" and prog.task.terminates
-    if noise is None or noise.name == "white":
+    if (noise is None or noise.name == "white") and policy.memory is not None:
+        def act(k, obs, m):  # a policy with memory (a planner's previous plan)
+            a, _, score, std, m = policy.act(k, theta, obs, ctx, m)
+            return a, (score, std), m
+
+        o, o_next, a, r, alive, (scores, std) = run_episode(
+            prog, key, act, cfg, length, hold, restart=restart, memory=policy.memory(theta, ctx))
+    elif noise is None or noise.name == "white":
         def act(k, obs):
             a, _, score, std = policy.act(k, theta, obs, ctx)
             return a, (score, std)

@@ -222,10 +222,18 @@ def _take_in(prog: Program, cfg: TrainConfig, state: TrainState, gp, ep: Episode
     return gp, fired, error_ratio
 
 
+def rollout_context(prog: Program, cfg: TrainConfig, state: TrainState, gp):
+    """What the method's policy reads in the update's roll-outs: its own context made from the
+    state (`Method.context`: a planner's model) or the Q-GP's, `gp` (`policy_context`)."""
+    if prog.method.context is not None:
+        return prog.method.context(prog, cfg, state)
+    return policy_context(cfg, gp, state.kernel)
+
+
 def _side_by_side(prog: Program, cfg: TrainConfig, state: TrainState, keys):
     """The update's episodes of a policy that does not read the GP, rolled out as one batch (the
     same draws as one after another), and their returns-to-go."""
-    ctx = policy_context(cfg, state.gp, state.kernel)
+    ctx = rollout_context(prog, cfg, state, state.gp)
     eps = jax.vmap(lambda k: rollout(prog, k, state.theta, ctx, prog.policy, cfg))(keys)
     returns = jax.vmap(episode_returns, in_axes=(0, None))(eps, cfg)
     return eps, returns
@@ -240,7 +248,7 @@ def roll_out_and_take_in(prog: Program, cfg: TrainConfig, state: TrainState, key
     if prog.policy.reads_gp:
         # Each episode acts with the GP that has taken in the episodes before it.
         def episode(gp, key_e):
-            ctx = policy_context(cfg, gp, state.kernel)
+            ctx = rollout_context(prog, cfg, state, gp)
             ep = rollout(prog, key_e, state.theta, ctx, prog.policy, cfg)
             returns = episode_returns(ep, cfg)
             gp, fired, error_ratio = _take_in(prog, cfg, state, gp, ep, returns)
@@ -282,7 +290,7 @@ def roll_out_and_take_in_switched(progs, method_index, cfg: TrainConfig, state: 
 
     def episode(gp, xs):
         key_e, pre = xs
-        ctx = policy_context(cfg, gp, state.kernel)
+        ctx = rollout_context(progs[0], cfg, state, gp)  # one context: `shares_program`
 
         def own(p):
             ep = rollout(p, key_e, state.theta, ctx, p.policy, cfg)
@@ -501,7 +509,7 @@ def make_train(config: TrainConfig):
     def episodes(key, state: TrainState, cfg=config, num_episodes: int = 3) -> Episode:
         """Episodes of the method's policy at `state` (theta and GP held fixed): fields gain a
         leading (num_episodes,) axis. For figures of visited states and for evaluation."""
-        ctx = policy_context(cfg, state.gp, state.kernel)
+        ctx = rollout_context(prog, cfg, state, state.gp)
         keys = jax.random.split(key, num_episodes)
         return jax.vmap(lambda k: rollout(prog, k, state.theta, ctx, prog.policy, cfg))(keys)
 

@@ -16,9 +16,11 @@ roll-out:
   rollout       the particle roll-outs through the model;
   optimise      the controller's optimisation (`Optimiser`: Adam, L-BFGS);
   actor         what acts in the real episodes (`Actor`: the learnt controller);
-  method        the method itself: its settings (`ModelSettings`), presets, `init`, `update`.
+  method        the method itself: its settings (`ModelSettings`), presets, `init`, `update`;
+  planner       gp_mpc: a planner that acts (CEM or MPPI through the model at every decision),
+                declared with `make_method` beside gp_model (`PlannerSettings`).
 
-Importing the package registers the method.
+Importing the package registers both methods.
 """
 
 from gpguided_jax.model_based import actor, data, gp, method, objectives, optimise, rollout, uncertainty
@@ -64,6 +66,7 @@ from gpguided_jax.model_based.method import (
 from gpguided_jax.model_based.objectives import OBJECTIVES, Objective, stated_reward
 from gpguided_jax.model_based.optimise import OPTIMISERS, Optimiser
 from gpguided_jax.model_based.optimise import optimise as optimise_controller
+from gpguided_jax.model_based.planner import PLANNER, SEQUENCE_OPTIMISERS, PlannerSettings, planner_steps
 from gpguided_jax.model_based.rollout import simulate
 from gpguided_jax.model_based.uncertainty import USES, Plan, Uncertainty, make_plan
 
@@ -80,4 +83,6 @@ __all__ = [
     "Optimiser", "Plan", "plan_steps", "predict", "refit", "rollout", "sample_weights", "simulate",
     "SparseModel", "stated_reward", "take_in", "targets_of", "Transitions", "transitions",
     "Uncertainty", "uncertainty", "update", "variance_factors", "wrap",
+    # gp_mpc
+    "planner", "PLANNER", "PlannerSettings", "planner_steps", "SEQUENCE_OPTIMISERS",
 ]
