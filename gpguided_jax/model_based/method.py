@@ -170,11 +170,15 @@ PRESETS = {
                     "min_std": 0.05, "eval_episodes": 10, "model_exploration": "thompson",
                     "model_horizon": 2.0, "model_learning_rate": 0.03, "model_steps": 200,
                     "model_inducing": 400},
-    # 10 episodes, decisions held 5 steps
+    # 10 episodes, decisions held 5 steps; the planning study's trainable RBF network, particles
+    # half from visited starts and the longer search
     "mountaincar-continuous": {"episodes_per_update": 1, "hold_time": 5.0, "init_log_std": 0.0,
                                "min_std": 0.05, "eval_episodes": 5, "model_horizon": 200.0,
                                "model_end_softness": 1.0, "num_updates": 11,
-                               "model_exploration": "thompson"},
+                               "model_exploration": "thompson", "controller": "rbf_trainable",
+                               "model_particles": 64, "model_visited_starts": 0.5,
+                               "model_steps": 200, "model_final_rate": 0.1,
+                               "model_keep_best": True},
     # restarted episodes, 6,000 steps
     "inverted-pendulum": {"episodes_per_update": 1, "num_updates": 7, "episode_end": "restart",
                           "init_log_std": math.log(0.5), "min_std": 0.05, "eval_episodes": 5,
