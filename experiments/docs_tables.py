@@ -841,23 +841,26 @@ def planning_table(task: str) -> str:
     measure = d["measure"]
     lines = ["| method | planned with | seeds reaching the threshold | environment steps to it, "
              f"median | wall time to it, median | final {measure}, mean | seeds above it at the "
-             "end | model error, last update |",
-             "|---|---|---|---|---|---|---|---|"]
+             "end | model error, last update | simulated return, last update |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in d["rows"]:
         wall = r.get("wall_to_threshold_median")
         final = f"{r['final_mean']:.2f}" if measure == "success rate" else f"{r['final_mean']:.1f}"
-        error = r.get("model_error_last")
+        error, simulated = r.get("model_error_last"), r.get("model_return_last")
         lines.append(f"| {r['method']} | {r['objective']} | {r['seeds_reaching']}/{r['seeds']} | "
                      f"{_steps(r['steps_to_threshold_median'])} | "
                      f"{'–' if wall is None else f'{wall:.0f} s'} | {final} | "
                      f"{r['seeds_above_at_end']}/{r['seeds']} | "
-                     f"{'–' if error is None else f'{error:.3f}'} |")
+                     f"{'–' if error is None else f'{error:.3f}'} | "
+                     f"{'–' if simulated is None else f'{simulated:.1f}'} |")
     settings = "; ".join(f"{r['method']}: {_settings(r['settings'])}" for r in d["rows"]
                          if "settings" in r)
     lines += ["", _caption(f"Held-out seeds {_seed_range(d['seeds'])}; threshold: a {measure} of "
                            f"{d['threshold']:g}; the model error is 1 − R² of the model's "
                            "predictions of the last update's new transitions before it took them "
-                           f"in, the median over seeds. Settings: {settings}.", _source(path))]
+                           "in; the simulated return is the planning objective's mean over the "
+                           "particles after the last update's optimisation, in its own units; "
+                           f"both the median over seeds. Settings: {settings}.", _source(path))]
     return "\n".join(lines)
 
 

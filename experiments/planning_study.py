@@ -234,11 +234,14 @@ def report(task: str, out: str) -> None:
         with np.load(path + ".npz") as f:
             steps, ret = f["steps"], np.asarray(f["measure"], float)
             error = np.asarray(f["model_error"], float)
-        # the diagnostic beside each gp_model row: the model's error on the last update's new
-        # transitions before it took them in (1 - R^2, median over seeds)
+            simulated = np.asarray(f["model_return"], float)
+        # the diagnostics beside each gp_model row: the model's error on the last update's new
+        # transitions before it took them in (1 - R^2), and the simulated return the last
+        # update's optimisation reached, medians over seeds
         rows.append({**MS._row(label, steps, ret, threshold, meta["wall_s"], seeds),
                      "objective": objective_of(meta["settings"]), "settings": meta["settings"],
-                     "model_error_last": float(np.median(error[:, -1]))})
+                     "model_error_last": float(np.median(error[:, -1])),
+                     "model_return_last": float(np.median(simulated[:, -1]))})
         curves[label] = (steps, ret)
     choice = today(task).get("model_exploration", "mean")
     old = os.path.join(ROOT, "docs", "results", "model", task, "heldout", choice)
@@ -251,6 +254,11 @@ def report(task: str, out: str) -> None:
             rows.append({**MS._row("gp_model (today)", *curves["gp_model (today)"], threshold,
                                    old_meta["wall_s"], seeds), "objective": "stated",
                          "model_error_last": float(np.median(old_error[:, -1]))})
+            run = os.path.join(ROOT, "docs", "results", "model", task, "runs", choice,
+                               "results.npz")
+            if os.path.exists(run):
+                with np.load(run) as f:
+                    rows[-1]["model_return_last"] = float(np.median(f["model_return"][0][:, -1]))
     others = MS._others(task, seeds)
     for name in MS.BESIDE:
         if name in others:
