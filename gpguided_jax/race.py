@@ -331,11 +331,12 @@ def _child_main(run: dict) -> int:
         runtime.set_precision("float64")
         runtime.set_compile_cache(run["cache"])
         from gpguided_jax import config as config_lib
-        from gpguided_jax import reproduce, study
+        from gpguided_jax import reproduce, summaries
 
         cfg = config_lib.preset(run["preset"], method="gp_model", dtype="float64",
                                 **run["gp_overrides"])
-        axis = study.env_steps(cfg)
+        # the axis of the evaluation records (`study.env_steps`, without importing the studies)
+        axis = summaries.env_steps_axis(summaries.task_budget(cfg), cfg.num_updates)
 
         def on_chunk(method, updates_done, chunk):
             values = chunk["eval_return"][0]  # the one seed's
