@@ -457,7 +457,9 @@ class TaskResult(NamedTuple):
 
 
 def train_on_task(algorithm: str, env: str, num_timesteps: int, episode_length: int, seed: int, *,
-                  num_evals: int = 11, hidden_layers: tuple = (64, 64), **kwargs) -> TaskResult:
+                  num_evals: int = 11, hidden_layers: tuple = (64, 64),
+                  on_evaluation: Callable[[int, float], None] | None = None,
+                  **kwargs) -> TaskResult:
     """brax's PPO or SAC on a task of `gpguided_jax.tasks` ('gymnax:<id>' or 'brax:<name>'),
     through `brax_env.task_env`; evaluated by brax's evaluator on `num_eval_envs` fresh episodes
     with the deterministic policy (the mean action), as the GP methods' `eval_return` evaluates
@@ -473,6 +475,7 @@ def train_on_task(algorithm: str, env: str, num_timesteps: int, episode_length: 
       seed: the trainer's seed.
       num_evals: evaluations, the initial one included (>= 2).
       hidden_layers: hidden sizes of every MLP.
+      on_evaluation: called with (environment steps, return) as each evaluation ends.
       **kwargs: overrides of `PPO_DEFAULTS` / `SAC_DEFAULTS`, or further `train` arguments.
     """
     _quiet_brax()
@@ -503,6 +506,8 @@ def train_on_task(algorithm: str, env: str, num_timesteps: int, episode_length: 
     def progress(step, metrics):
         steps.append(int(step))
         returns.append(float(metrics["eval/episode_reward"]))
+        if on_evaluation is not None:
+            on_evaluation(steps[-1], returns[-1])
 
     with jax.enable_x64(False):
         t0 = time.perf_counter()
@@ -601,7 +606,7 @@ def plan_preset(algorithm: str, preset: str, *, env: str | None = None,
 def run_preset(algorithm: str, preset: str, seeds, *, env: str | None = None,
                num_timesteps: int | None = None, num_evals: int = 26,
                hidden_layers: tuple = HIDDEN_LAYERS, overrides: dict | None = None,
-               progress=None) -> dict:
+               progress=None, on_evaluation=None) -> dict:
     """brax's `algorithm` on a standard task with a preset's budget and tuned settings, one run
     per seed (`gpguided baseline`), after `plan_preset`'s checks.
 
@@ -618,6 +623,7 @@ def run_preset(algorithm: str, preset: str, seeds, *, env: str | None = None,
       overrides: further trainer arguments, over the tuned ones.
       progress: called with a line before the first run if brax rounds the budget up
         (`budget_note`), and after each seed.
+      on_evaluation: `train_on_task`'s, for every seed.
 
     Returns:
       A dict: algorithm, preset, env, settings, budget (the environment steps asked for, brax's
@@ -637,7 +643,8 @@ def run_preset(algorithm: str, preset: str, seeds, *, env: str | None = None,
     runs = []
     for i, seed in enumerate(seeds):
         r = train_on_task(algorithm, plan["env"], budget, plan["episode_length"], seed,
-                          num_evals=num_evals, hidden_layers=tuple(hidden_layers), **settings)
+                          num_evals=num_evals, hidden_layers=tuple(hidden_layers),
+                          on_evaluation=on_evaluation, **settings)
         runs.append(r)
         if progress is not None:
             progress(f"[{algorithm}] seed {seed} ({i + 1}/{len(seeds)}): final return "

@@ -1,4 +1,5 @@
-"""The `gpguided` command line: parsing and the commands (demo, reproduce, baseline, sweep, bench).
+"""The `gpguided` command line: parsing and the commands (demo, reproduce, baseline, sweep, bench,
+race).
 `gpguided --help` lists the commands; each has its own --help. The process's set-up before a
 command runs (LAPACK threads, CPU devices, precision, compilation cache) is `runtime`'s."""
 
@@ -274,6 +275,37 @@ def _cmd_baseline(args) -> int:
     return 0
 
 
+def _cmd_race(args) -> int:
+    from gpguided_jax import race
+
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        print(f"gpguided race: error: --out {args.out} exists and is not a directory",
+              file=sys.stderr)
+        return 2
+    seeds = list(range(args.seed_start, args.seed_start + args.seeds))
+    states = [c.strip() for c in args.cache.split(",") if c.strip()]
+    try:  # everything a race cannot run is refused in one line before any process starts
+        unknown = [c for c in states if c not in race.CACHE_STATES]
+        if unknown or not states:
+            raise race.RaceError(f"--cache {args.cache}: choose cold, warm or cold,warm")
+        plan = race.plan(args.preset, seeds=seeds, sac_steps=args.sac_steps,
+                         sac_evals=args.sac_evals, gp_overrides=_parse_overrides(args.gp_set),
+                         sac_overrides=_parse_overrides(args.sac_set), threshold=args.threshold)
+        say = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+        say(f"[race] {plan['env']}: gp_model at its preset against SAC with {plan['sac_steps']} "
+            f"steps ({plan['sac_steps_source']}), threshold {plan['threshold']:g}, "
+            f"{len(seeds)} seed(s), {' and '.join(states)} compile cache")
+        if plan["sac_note"]:
+            say(f"[race] {plan['sac_note']}")
+        report = race.race(plan, args.out, cache_states=states, progress=say)
+    except race.RaceError as e:
+        print(f"gpguided race: error: {e}", file=sys.stderr)
+        return 2
+    print(race.table(report))
+    print(f"wrote {os.path.join(args.out, 'race.json')}")
+    return 0
+
+
 def _cmd_sweep(args) -> int:
     from gpguided_jax import sweep
 
@@ -337,7 +369,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Guided policy search with sparse online GPs (Jakab & Csato 2012) in JAX.",
     )
     sub = ap.add_subparsers(dest="command", required=True)
-    for add in (_add_demo, _add_reproduce, _add_baseline, _add_sweep, _add_bench):
+    for add in (_add_demo, _add_reproduce, _add_baseline, _add_sweep, _add_bench, _add_race):
         add(sub)
     return ap
 
@@ -592,6 +624,57 @@ def _add_bench(sub) -> None:
     be.add_argument("--quick", action="store_true", help="tiny sizes (a smoke test)")
     be.add_argument("--out", default=None, help="also write the JSON here (default: stdout only)")
     be.set_defaults(func=_cmd_bench)
+
+
+def _one_line_error(parser: argparse.ArgumentParser):
+    """A parser's `error` that says the message in one line on stderr (no usage), exit status 2."""
+    def error(message):
+        print(f"{parser.prog}: error: {message}", file=sys.stderr)
+        sys.exit(2)
+
+    return error
+
+
+def _add_race(sub) -> None:
+    ra = sub.add_parser(
+        "race",
+        formatter_class=_DefaultsHelp,
+        help="gp_model against brax's SAC: wall time to the task's threshold, compile included",
+        description="Runs gp_model at its preset (as `gpguided reproduce --methods gp_model`) and "
+        "brax's SAC (as `gpguided baseline sac`) on a standard task, each seed of each method in "
+        "a fresh process of its own, one after another, and reports each one's wall time from "
+        "the start of its process to its first evaluation of the deterministic policy at or "
+        "above the task's threshold, compilation included: with a cold compile cache (an empty "
+        "directory) and a warm one (the directory the cold run filled); the median over seeds "
+        "counts a seed that never reaches it as never. Writes race.json to --out and prints a "
+        "table. See gpguided_jax/race.py.",
+    )
+    ra.error = _one_line_error(ra)
+    ra.add_argument("--preset", default="pendulum-v1",
+                    help="a standard task's preset on which gp_model and SAC both run "
+                    "(pendulum-v1, mountaincar-continuous, inverted-pendulum, "
+                    "inverted-double-pendulum)")
+    ra.add_argument("--seeds", type=positive_int, default=10, help="number of seeds")
+    ra.add_argument("--seed-start", type=non_negative_int, default=REPORTED_SEED_START,
+                    help="first seed (the reported results' held-out seeds start at 1000)")
+    ra.add_argument("--sac-steps", type=positive_int, default=None,
+                    help="SAC's budget of environment steps (default: SAC's median steps to the "
+                    "threshold in docs/results/standard/<preset>/heldout_table.json, else the "
+                    "preset's budget)")
+    ra.add_argument("--sac-evals", type=positive_int, default=26,
+                    help="SAC's evaluations, the initial policy's included (at least 2)")
+    ra.add_argument("--cache", default="cold,warm", metavar="STATES",
+                    help="the compile cache states to race in: cold, warm or cold,warm (a warm "
+                    "run needs the cold run before it, which then runs unreported)")
+    ra.add_argument("--threshold", type=float, default=None,
+                    help="another level than the task's threshold")
+    ra.add_argument("--gp-set", nargs="+", default=None, metavar="FIELD=VALUE",
+                    help="config fields over gp_model's preset, as `gpguided reproduce --set`")
+    ra.add_argument("--sac-set", nargs="+", default=None, metavar="KEY=VALUE",
+                    help="trainer arguments over SAC's tuned settings, as `gpguided baseline "
+                    "--set`")
+    ra.add_argument("--out", default="results/race", help="output directory")
+    ra.set_defaults(func=_cmd_race)
 
 
 def main(argv: list[str] | None = None) -> int:

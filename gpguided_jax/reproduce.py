@@ -260,6 +260,7 @@ def run_method(
     progress: Callable[[str], None] = _log,
     seed_loop: str = "auto",
     gp_program: str = "shared",
+    on_chunk: Callable[[str, int, dict], None] | None = None,
 ):
     """Runs one method for all seeds, a compiled chunk of updates at a time, resuming from
     `out_dir/checkpoint_<method>.npz` when present.
@@ -274,6 +275,8 @@ def run_method(
       max_chunks: run at most this many chunks in this call (to test resumption); None: to the end.
       seed_loop: how each device runs its seeds, 'auto', 'vmap' or 'map' (`per_seed_program`).
       gp_program: 'shared' (one program for every GP method) or 'per_method' (`chunk_program`).
+      on_chunk: called after each chunk, once its records are on the host, with the method, the
+        updates done and the chunk's records (field -> (seeds, updates of the chunk)).
 
     Returns:
       (records, state): dict field -> (seeds, updates_done) records, and the final `TrainState`.
@@ -313,6 +316,9 @@ def run_method(
         else:
             rate = (chunks_this_call - 1) * chunk_size / max(time.perf_counter() - t_first, 1e-9)
         progress(_chunk_progress(cfg, rec, len(seeds), updates_done, rate, first_s))
+        if on_chunk is not None:
+            on_chunk(cfg.method, updates_done,
+                     {k: np.asarray(getattr(rec, k))[:len(seeds)] for k in rec._fields})
     return {k: v[:len(seeds)] for k, v in records.items()}, state
 
 
@@ -397,6 +403,7 @@ def reproduce(
     seed_loop: str = "auto",
     gp_program: str = "shared",
     keep_checkpoints: bool = False,
+    on_chunk: Callable[[str, int, dict], None] | None = None,
 ) -> dict:
     """Runs every method (default: the paper's) for every seed and writes results.npz,
     config.json, summary.csv, comparisons.csv and Fig. 5 to `out_dir`.
@@ -413,13 +420,14 @@ def reproduce(
     sharded over the devices of all of them; each keeps its own checkpoint, and process 0 reports
     progress and writes config.json, results.npz, the CSV files and the figures. The GP methods
     share one compiled program (`gp_program='shared'`; 'per_method' compiles one each, see
-    `chunk_program`).
+    `chunk_program`). `on_chunk`: `run_method`'s, for every method.
     """
     _check_gp_program(gp_program)
     methods = list(methods_lib.paper() if methods is None else methods)
     with checkpoints.open_out_dir(out_dir):
         out = _reproduce(preset, list(map(int, seeds)), list(methods), out_dir, dtype, chunk_size,
-                         num_devices, max_chunks, overrides, progress, seed_loop, gp_program)
+                         num_devices, max_chunks, overrides, progress, seed_loop, gp_program,
+                         on_chunk)
         if out["complete"] and not keep_checkpoints:
             for m in methods:
                 checkpoints.remove_checkpoints(out_dir, m)
@@ -427,7 +435,7 @@ def reproduce(
 
 
 def _reproduce(preset, seeds, methods, out_dir, dtype, chunk_size, num_devices, max_chunks,
-               overrides, progress, seed_loop, gp_program) -> dict:
+               overrides, progress, seed_loop, gp_program, on_chunk=None) -> dict:
     """`reproduce` in the locked `out_dir`."""
     main = distributed.is_main()
     if not main:  # one voice: process 0 reports progress and writes the results
@@ -450,7 +458,7 @@ def _reproduce(preset, seeds, methods, out_dir, dtype, chunk_size, num_devices, 
         rec, _ = run_method(cfgs[m], seeds, out_dir, chunk_size=chunk_size, mesh=mesh,
                             kernels=priors.get(m),
                             max_chunks=max_chunks, progress=progress, seed_loop=loop,
-                            gp_program=gp_program)
+                            gp_program=gp_program, on_chunk=on_chunk)
         if rec["mean_reward"].shape[1] < cfgs[m].num_updates:
             return {"complete": False}
         records[m] = rec
