@@ -884,8 +884,8 @@ METHODS_AT_A_GLANCE = {
                   "more improvement per episode", "pendulum-v1"),
     "gp_model": ("the dynamics (and the reward, where the task states none)",
                  "few environment steps on smooth tasks", "pendulum-v1"),
-    "gp_mpc": ("the dynamics, as gp_model's; a planner acts through it at every decision",
-               "trying model predictive control (not tuned in a study)", "pendulum-v1"),
+    "gp_mpc": ("the dynamics; a planner acts through it at every decision",
+               "model predictive control (untuned)", "pendulum-v1"),
 }
 
 

@@ -144,8 +144,11 @@ def register(method: Method, *, replace: bool = False) -> Method:
     if method.settings is not None:  # another class may not take its flat names (one may share
         # it, or extend it: a subclass keeps its base's flat names)
         related = lambda c: issubclass(c, method.settings) or issubclass(method.settings, c)  # noqa: E731
-        taken = {f: m.name for m in _REGISTRY.values() if m.name != method.name and m.settings
-                 and not related(m.settings) for f in m.settings.FLAT.values()}
+        taken = {}  # each flat name -> the method that first declared it
+        for m in _REGISTRY.values():
+            if m.name != method.name and m.settings and not related(m.settings):
+                for f in m.settings.FLAT.values():
+                    taken.setdefault(f, m.name)
         clash = sorted(set(method.settings.FLAT.values()) & set(taken))
         if clash:
             raise ValueError(f"method {method.name!r}: settings {clash} are already "

@@ -181,7 +181,8 @@ def test_gp_mpc_s_settings_extend_gp_model_s_by_their_flat_names():
     assert methods.setting_owners()["model_horizon"] == ("gp_model", "gp_mpc")
     assert methods.setting_owners()["mpc_samples"] == ("gp_mpc",)
     traced = jax.tree_util.tree_leaves(own)
-    assert len(traced) == len(P.PlannerSettings.TRACED) == 5  # gp_model's 3, the planner's 2
+    # gp_model's traced settings and the planner's two
+    assert len(traced) == len(P.PlannerSettings.TRACED) == len(MB.ModelSettings.TRACED) + 2
     assert type(C.make_config(method="gp_model", mpc_samples=16).settings) is MB.ModelSettings
     prog = rollouts.make_program(cfg)
     dt = C.control_interval(cfg)
