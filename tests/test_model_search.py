@@ -128,8 +128,11 @@ def _loss_sat(m, z, w):
     return 1.0 - np.exp(-d @ i_spw @ d / 2) / np.sqrt(np.linalg.det(np.eye(len(m)) + s @ w))
 
 
-@pytest.mark.parametrize("env", ["pendulum", "gymnax:Pendulum-v1", "brax:inverted_pendulum",
-                                 "brax:inverted_double_pendulum"])
+# brax's tasks take their normalisation's episodes to make: the slow tier
+@pytest.mark.parametrize("env", ["pendulum", "gymnax:Pendulum-v1",
+                                 pytest.param("brax:inverted_pendulum", marks=pytest.mark.slow),
+                                 pytest.param("brax:inverted_double_pendulum",
+                                              marks=pytest.mark.slow)])
 def test_the_saturating_objective_is_pilco_matlab_s_cost_on_the_declared_target(env):
     """A decision's saturating reward is hold x (1 - lossSat) with W = I / width^2 on the task's
     target, at random observations; 1 at the target itself."""
@@ -163,7 +166,8 @@ def _numpy_rbf(params, y, u_max, linear):
 
 @pytest.mark.parametrize("env,name", [("pendulum", "rbf_trainable"), ("pendulum", "linear_rbf"),
                                       ("gymnax:Pendulum-v1", "rbf_trainable"),
-                                      ("brax:inverted_pendulum", "linear_rbf")])
+                                      pytest.param("brax:inverted_pendulum", "linear_rbf",
+                                                   marks=pytest.mark.slow)])
 def test_the_trainable_rbf_s_value_and_gradient_match_a_numpy_network(env, name):
     """c(s) and d c / d(centres, log widths, weights, bias, linear part) at random parameters,
     jax.grad against the NumPy network's hand-derived gradient (float64)."""
@@ -229,6 +233,7 @@ def test_the_decaying_rate_is_a_cosine_to_the_final_fraction():
     assert float(MB.optimise.rate(0.1, 50)(30)) == pytest.approx(0.1)
 
 
+@pytest.mark.slow  # a compilation per replayed iterate
 def test_keep_best_returns_the_best_iterate_seen_on_the_plan(balance):
     """With a step size far too large, the last iterate is worse than one seen before it;
     keep_best returns an iterate whose simulated return is the best of every iterate's (each
