@@ -165,11 +165,13 @@ PRESETS = {
     "swingup": {"episodes_per_update": 1, "hold_time": 0.1, "init_log_std": math.log(2.0),
                 "min_std": 0.05, "eval_episodes": 10, "model_horizon": 6.0, "num_updates": 11,
                 "model_exploration": "thompson"},
-    # 2,000 steps
+    # 2,000 steps; the planning study's linear plus RBF controller, particles half from visited
+    # starts, fresh draws at every step
     "pendulum-v1": {"episodes_per_update": 1, "num_updates": 11, "init_log_std": 0.0,
                     "min_std": 0.05, "eval_episodes": 10, "model_exploration": "thompson",
                     "model_horizon": 2.0, "model_learning_rate": 0.03, "model_steps": 200,
-                    "model_inducing": 400},
+                    "model_inducing": 400, "controller": "linear_rbf", "model_particles": 64,
+                    "model_visited_starts": 0.5, "model_fresh_draws": True},
     # 10 episodes, decisions held 5 steps; the planning study's trainable RBF network, particles
     # half from visited starts and the longer search
     "mountaincar-continuous": {"episodes_per_update": 1, "hold_time": 5.0, "init_log_std": 0.0,
