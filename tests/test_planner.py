@@ -1,8 +1,8 @@
 """gp_mpc's planner (`gpguided_jax.model_based.planner`): its sequence optimisers' first action on a
 linear system with a quadratic cost against the LQR action of scipy's Riccati solver, within the
 sampling error their sample counts and iterations give; the planner acting through brax's own
-dynamics of its inverted pendulum (a known model) for a whole episode; and gp_mpc trained end to end through the
-registry and the command line."""
+dynamics of its inverted pendulum (a known model) for a whole episode; and gp_mpc trained end to
+end through the registry and the command line."""
 
 from __future__ import annotations
 
