@@ -280,6 +280,30 @@ def _others(task: str, seeds: list) -> dict:
     return others
 
 
+def heldout_figure(task: str, curves: dict, threshold: float, measure_name: str, seeds: list,
+                   name: str) -> str:
+    """The held-out curves (name -> (steps, curves (seeds, evaluations))) against environment
+    steps on a log axis, gp_model's solid and the others dotted, with the threshold; written to
+    docs/figures/<name>. Returns its path."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for label, (steps, ret) in curves.items():
+        study.plot_band(ax, steps, ret, label=label, ls="-" if label.startswith("gp_model") else ":")
+    ax.axhline(threshold, color="k", ls="--", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_xlabel("environment steps (log)")
+    ax.set_ylabel(f"{measure_name} of the deterministic policy")
+    fewer = {c[1].shape[0] for n, c in curves.items() if not n.startswith("gp_model")} - {len(seeds)}
+    ax.set_title(f"{task}: {len(seeds)} held-out seeds (mean, 95% t-band)" if not fewer else
+                 f"{task}: held-out seeds, {len(seeds)} for gp_model, {min(fewer)} for the others "
+                 "(mean, 95% t-band)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    figure = os.path.join(ROOT, "docs", "figures", name)
+    fig.savefig(figure, dpi=110)
+    plt.close(fig)
+    return figure
+
+
 def report(task: str, out: str) -> None:
     record, threshold, measure_name = measure(task)
     rows, curves = [], {}
@@ -326,22 +350,7 @@ def report(task: str, out: str) -> None:
             if name.startswith("gp_model (") and name != mean_key:
                 row["p_improvement_over_mean"] = stats.probability_of_improvement(
                     curves[name][1][:, -1], curves[mean_key][1][:, -1])
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for name, (steps, ret) in curves.items():
-        study.plot_band(ax, steps, ret, label=name, ls="-" if name.startswith("gp_model") else ":")
-    ax.axhline(threshold, color="k", ls="--", lw=0.8)
-    ax.set_xscale("log")
-    ax.set_xlabel("environment steps (log)")
-    ax.set_ylabel(f"{measure_name} of the deterministic policy")
-    fewer = {c[1].shape[0] for n, c in curves.items() if not n.startswith("gp_model")} - {len(seeds)}
-    ax.set_title(f"{task}: {len(seeds)} held-out seeds (mean, 95% t-band)" if not fewer else
-                 f"{task}: held-out seeds, {len(seeds)} for gp_model, {min(fewer)} for the others "
-                 "(mean, 95% t-band)")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    figure = os.path.join(ROOT, "docs", "figures", f"model_{task}.png")
-    fig.savefig(figure, dpi=110)
-    plt.close(fig)
+    figure = heldout_figure(task, curves, threshold, measure_name, seeds, f"model_{task}.png")
     study.write_json(os.path.join(out, "heldout_table.json"), {
         "task": task, "threshold": threshold, "measure": measure_name, "seeds": seeds,
         "budget": BUDGETS[task], "horizon_steps": _horizon_steps(task),

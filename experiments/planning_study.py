@@ -47,14 +47,10 @@ import json
 import os
 import time
 
-import matplotlib
+import model_study as MS  # its figure sets matplotlib's Agg backend
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import model_study as MS  # noqa: E402
-import numpy as np  # noqa: E402
-
-from gpguided_jax import study  # noqa: E402
+from gpguided_jax import study
 
 ROOT = MS.ROOT
 METHOD = MS.METHOD
@@ -265,19 +261,8 @@ def report(task: str, out: str) -> None:
             s, r, wall = others[name]
             rows.append({**MS._row(name, s, r, threshold, wall, seeds), "objective": "task's reward"})
             curves[name] = (s, r)
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for name, (s, r) in curves.items():
-        study.plot_band(ax, s, r, label=name, ls="-" if name.startswith("gp_model") else ":")
-    ax.axhline(threshold, color="k", ls="--", lw=0.8)
-    ax.set_xscale("log")
-    ax.set_xlabel("environment steps (log)")
-    ax.set_ylabel(f"{measure_name} of the deterministic policy")
-    ax.set_title(f"{task}: {len(seeds)} held-out seeds (mean, 95% t-band)")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    figure = os.path.join(ROOT, "docs", "figures", f"planning_{task}.png")
-    fig.savefig(figure, dpi=110)
-    plt.close(fig)
+    figure = MS.heldout_figure(task, curves, threshold, measure_name, seeds,
+                               f"planning_{task}.png")
     study.write_json(os.path.join(out, "heldout_table.json"), {
         "task": task, "threshold": threshold, "measure": measure_name, "seeds": seeds,
         "budget": MS.BUDGETS[task], "rows": rows})
