@@ -32,6 +32,7 @@ import os
 import re
 import sys
 
+from gpguided_jax import race as race_lib
 from gpguided_jax.baselines import NAMES as BASELINES
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -972,6 +973,24 @@ def headline_table() -> str:
     return "\n".join(lines)
 
 
+RACE_TASKS = ("pendulum-v1",)  # the tasks whose race is committed (docs/results/race/<task>)
+
+
+def race_table(task: str = "pendulum-v1") -> str:
+    """`gpguided race`'s medians on `task` (docs/results/race/<task>/race.json)."""
+    path = os.path.join("race", task, "race.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        report = json.load(f)
+    return race_lib.table(report) + "\n\n" + _caption(
+        f"gp_model at its {report['preset']} preset and brax's SAC on {report['env']} to the "
+        f"threshold {report['threshold']:g}, held-out seeds {_seed_range(report['seeds'])}, each "
+        "seed of each method in a fresh process on the same machine: medians over the seeds of "
+        "the wall time from the process's launch to the first evaluation at or above the "
+        "threshold (compilation included; a seed that never reaches it counts as never), of the "
+        f"environment steps there and of the whole run. SAC's budget: {report['sac_steps']:,} "
+        f"steps ({report['sac_steps_source']}).", _source(path))
+
+
 TABLES = {
     "fig5": fig5_table,
     "improvement": improvement_table,
@@ -984,6 +1003,7 @@ TABLES = {
     "gradient_check": gradient_check_table,
     "bench": bench_table,
     "bench_model": bench_model_table,
+    **{f"race_{t.replace('-', '_')}": (lambda t=t: race_table(t)) for t in RACE_TASKS},
     "scaling": scaling_table,
     "swingup": swingup_table,
     "swingup_warm": swingup_warm_table,

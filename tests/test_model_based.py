@@ -183,6 +183,73 @@ def test_function_samples_have_the_posterior_mean_and_covariance():
     assert np.all(np.abs(cov - cov_ref) < 5 * cov_se)
 
 
+def _rows_model(rng, dtype, e=3, m=30, d=4):
+    """A model of e outputs with their own length-scales over m inducing inputs (a few unused), for
+    the roll-outs' mean (`gp.mean_at`); only the fields `mean_at` and `k_star` read."""
+    mask = np.ones(m, bool)
+    mask[[3, 17]] = False
+    kern = kernels.KernelParams(jnp.asarray(rng.uniform(0.3, 2.0, (e, d)), dtype),
+                                jnp.asarray(rng.uniform(0.5, 2.0, e), dtype),
+                                jnp.asarray(np.full(e, 0.01), dtype))
+    return MB.SparseModel(jnp.asarray(rng.normal(size=(m, d)), dtype), jnp.asarray(mask), kern,
+                          None, None, None, None)
+
+
+def _plain_mean(model, fields, w, x):
+    """The mean through the kernel rows, differentiated by autodiff (the reference); `fields` the
+    model's (inducing inputs, kernels)."""
+    return jnp.sum(MB.k_star(model._replace(inducing=fields[0], kernels=fields[1]), x) * w, axis=-1)
+
+
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_the_roll_outs_mean_and_its_closed_form_derivative_against_numpy_and_autodiff(dtype):
+    """`gp.mean_at` (the simulated roll-outs' model, its derivative in closed form) is sum_m w_em
+    k_e(x, z_m) in NumPy, and its derivatives in x, the weights, the length-scales, sigma_f^2 and
+    the inducing inputs, forward and reverse, and its Hessian in x are autodiff's through
+    `k_star`: at inputs near the data, on an inducing input and far from every one (where the
+    kernel rows underflow to 0)."""
+    rng = np.random.default_rng(5)
+    model = _rows_model(rng, dtype)
+    w = jnp.asarray(rng.normal(size=(3, 30)), dtype)
+    rtol = 1e-10 if dtype == "float64" else 2e-4
+
+    def mean(mdl, fields, w, x):
+        return MB.mean_at(MB.scaled(mdl._replace(inducing=fields[0], kernels=fields[1])), w, x)
+
+    fields = (model.inducing, model.kernels)
+
+    @jax.jit
+    def derivatives(fields, w, x):
+        """Each function's value, Jacobians in the model's fields, the weights and the input
+        (forward and reverse) and Hessian in the input, in one compiled program."""
+        out = {}
+        for name, f in (("closed", functools.partial(mean, model)),
+                        ("autodiff", functools.partial(_plain_mean, model))):
+            out[name] = ([jax.jacfwd(f, a)(fields, w, x) for a in (0, 1, 2)]
+                         + [jax.jacrev(f, a)(fields, w, x) for a in (0, 1, 2)]
+                         + [jax.hessian(f, 2)(fields, w, x)])
+        return out
+
+    for x in (rng.normal(size=4), np.asarray(model.inducing[5]), np.full(4, 40.0)):
+        x = jnp.asarray(x, dtype)
+        kern = model.kernels
+        reference = np.array([np.sum(np.where(np.asarray(model.inducing_mask), _se(
+            np.asarray(x, np.float64)[None], np.asarray(model.inducing, np.float64),
+            np.asarray(kern.lengthscales[e], np.float64), float(kern.signal_variance[e]))[0], 0.0)
+            * np.asarray(w[e], np.float64)) for e in range(3)])
+        scale = np.max(np.abs(reference)) + 1e-30
+        np.testing.assert_allclose(np.asarray(mean(model, fields, w, x), np.float64), reference,
+                                   atol=rtol * scale)
+        got = derivatives(fields, w, x)
+        for g, r in zip(jax.tree_util.tree_leaves(got["closed"]),
+                        jax.tree_util.tree_leaves(got["autodiff"]), strict=True):
+            g, r = np.asarray(g, np.float64), np.asarray(r, np.float64)
+            assert np.all(np.isfinite(g))
+            np.testing.assert_allclose(g, r, atol=rtol * (np.max(np.abs(r)) + 1e-30))
+    far = jax.grad(lambda x: jnp.sum(mean(model, fields, w, x)))(jnp.full(4, 40.0, dtype))
+    assert np.all(np.asarray(far) == 0.0)
+
+
 def test_the_buffer_keeps_the_newest_transitions_and_the_targets_wrap_angles():
     data = MB.empty_data(5, 2, 1, jnp.float64, ())
     for start in (0, 3, 6):

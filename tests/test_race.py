@@ -1,13 +1,18 @@
 """`gpguided race` (`gpguided_jax.race`): the time to the threshold from timed evaluations, the
-medians over seeds, the default budget of SAC, refused input, and the command end to end."""
+medians over seeds, the default budget of SAC, refused input, the command end to end, and the
+committed race's generated block against its runs."""
 
+import importlib.util
 import json
 import os
+import statistics
 
 import pytest
 from conftest import run_script
 
 from gpguided_jax import cli, race
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_time_to_threshold_by_hand():
@@ -116,3 +121,33 @@ def test_race_end_to_end(tmp_path):
     assert report["methods"]["sac"]["cold"]["runs"][0]["env_steps_to_threshold"] > 0
     assert report["methods"]["gp_model"]["cold"]["runs"][0]["env_steps_to_threshold"] == 0
     assert "| gp_model | warm | 1/1 |" in proc.stdout and "| sac | cold | 1/1 |" in proc.stdout
+
+
+def test_the_committed_race_block_holds_the_medians_of_its_runs():
+    """The generated race block of the README and the benchmarks page, against race.json's runs
+    recomputed here: each method's and cache state's seeds reaching the threshold (from each run's
+    evaluations) and the median over seeds of its wall time to it (a seed that never reaches it
+    counting as never)."""
+    spec = importlib.util.spec_from_file_location(
+        "docs_tables", os.path.join(ROOT, "experiments", "docs_tables.py"))
+    tables = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tables)
+    path = os.path.join(tables.RESULTS, "race", "pendulum-v1", "race.json")
+    with open(path) as f:
+        report = json.load(f)
+    block = tables.race_table("pendulum-v1")
+    n = len(report["seeds"])
+    for method, states in report["methods"].items():
+        for state, s in states.items():
+            times = []
+            for run in s["runs"]:
+                hit = [e["t"] for e in run["evaluations"]
+                       if e["value"] >= report["threshold"]
+                       and not (method == "sac" and e["env_steps"] == 0)]
+                times.append(hit[0] if hit else float("inf"))
+            reaching = sum(t < float("inf") for t in times)
+            median = statistics.median(times)
+            cell = "never" if median == float("inf") else f"{median:.1f}"
+            assert f"| {method} | {state} | {reaching}/{n} | {cell} |" in block
+    readme = open(os.path.join(tables.ROOT, "README.md")).read()
+    assert block in readme

@@ -44,9 +44,11 @@ from gpguided_jax.model_based.gp import (
     fast_variance,
     jitter_floor,
     k_star,
+    mean_at,
     predict,
     refit,
     sample_weights,
+    scaled,
     variance_factors,
 )
 from gpguided_jax.model_based.method import (
@@ -78,11 +80,11 @@ __all__ = [
     "EXPLORATIONS", "JITTER", "OBJECTIVES", "OPTIMISERS", "OPTIMIZERS", "RECORDS", "USES", "Actor",
     "actor", "build", "condition", "data", "decision_rewards", "decisions", "empty_data",
     "farthest_points", "fast_variance", "gp", "improve", "init", "jitter_floor", "k_star",
-    "learns_reward", "make_method", "make_plan", "method", "model_errors", "model_keys", "ModelData",
-    "ModelSettings", "next_of", "Objective", "objectives", "optimise", "optimise_controller",
-    "Optimiser", "Plan", "plan_steps", "predict", "refit", "rollout", "sample_weights", "simulate",
-    "SparseModel", "stated_reward", "take_in", "targets_of", "Transitions", "transitions",
-    "Uncertainty", "uncertainty", "update", "variance_factors", "wrap",
+    "learns_reward", "make_method", "make_plan", "mean_at", "method", "model_errors", "model_keys",
+    "ModelData", "ModelSettings", "next_of", "Objective", "objectives", "optimise",
+    "optimise_controller", "Optimiser", "Plan", "plan_steps", "predict", "refit", "rollout",
+    "sample_weights", "scaled", "simulate", "SparseModel", "stated_reward", "take_in", "targets_of",
+    "Transitions", "transitions", "Uncertainty", "uncertainty", "update", "variance_factors", "wrap",
     # gp_mpc
     "planner", "PLANNER", "PlannerSettings", "planner_steps", "SEQUENCE_OPTIMISERS",
 ]

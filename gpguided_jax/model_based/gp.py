@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 
 from gpguided_jax import hyperfit, kernels
 from gpguided_jax.model_based.data import ModelData, subset
@@ -184,6 +185,75 @@ def fast_variance(model: SparseModel, factors, ks):
     v = model.kernels.signal_variance - jnp.sum(p * p, axis=-1) + jnp.sum(q * q, axis=-1)
     return jnp.maximum(v, 0.0)
 
+
+
+class ScaledInducing(NamedTuple):
+    """The model's inducing inputs in each output's length-scales, for `mean_at` (`scaled`).
+
+    Attributes:
+      inducing: (E, M, D) Z / l_e, each output's inducing inputs divided by its length-scales.
+      inverse_lengthscales: (E, D) 1 / l_e.
+      signal_variance: (E,) sigma_f,e^2.
+      mask: (M,) bool, the inducing inputs in use (`SparseModel.inducing_mask`).
+    """
+
+    inducing: jax.Array
+    inverse_lengthscales: jax.Array
+    signal_variance: jax.Array
+    mask: jax.Array
+
+
+def scaled(model: SparseModel) -> ScaledInducing:
+    """`model`'s inducing inputs scaled once for the many evaluations of `mean_at`."""
+    inv = 1.0 / model.kernels.lengthscales
+    return ScaledInducing(model.inducing[None] * inv[:, None, :], inv,
+                          model.kernels.signal_variance, model.inducing_mask)
+
+
+@jax.custom_jvp
+def _mean_row(zs, inv_l, sf2, mask, weights, x):
+    d = zs - (x * inv_l)[:, None, :]
+    k = jnp.where(mask, sf2[:, None] * jnp.exp(-0.5 * jnp.sum(d * d, axis=-1)), 0.0)
+    return jnp.sum(k * weights, axis=-1)
+
+
+def _mean_row_jvp(primals, tangents):
+    """The derivative of f_e = sum_m w_em k_e(x, z_m), k_e = sf_e^2 exp(-|d_em|^2 / 2), d_em =
+    z_m / l_e - x / l_e, in closed form: df_e/dx = (sum_m w_em k_em d_em) / l_e, a (E, D) matrix
+    made in the forward pass, so that reverse mode keeps it instead of the (E, M) kernel rows."""
+    zs, inv_l, sf2, mask, weights, x = primals
+    t_zs, t_inv, t_sf2, _, t_w, t_x = tangents
+    d = zs - (x * inv_l)[:, None, :]
+    k = jnp.where(mask, sf2[:, None] * jnp.exp(-0.5 * jnp.sum(d * d, axis=-1)), 0.0)
+    wk = k * weights
+    out = jnp.sum(wk, axis=-1)
+    g = jnp.einsum("em,emd->ed", wk, d)  # sum_m w_em k_em d_em
+    zero = lambda t: isinstance(t, SymbolicZero)  # noqa: E731
+    t_out = jnp.zeros_like(out)
+    if not zero(t_x):
+        t_out = t_out + (g * inv_l) @ t_x
+    if not zero(t_inv):
+        t_out = t_out + jnp.sum(g * x * t_inv, axis=-1)
+    if not zero(t_zs):
+        t_out = t_out - jnp.einsum("emd,emd->e", wk[..., None] * d, t_zs)
+    if not zero(t_sf2):
+        t_out = t_out + out * t_sf2 / sf2
+    if not zero(t_w):
+        t_out = t_out + jnp.sum(k * t_w, axis=-1)
+    return out, t_out
+
+
+_mean_row.defjvp(_mean_row_jvp, symbolic_zeros=True)
+
+
+def mean_at(s: ScaledInducing, weights, x):
+    """(E,) sum_m w_em k_e(x, z_m), the mean (`SparseModel.weights`) or a drawn function's value
+    (`sample_weights`) of every output at one input x, from `scaled`: the same function as
+    `k_star(model, x) . weights`, with its derivative in closed form (`_mean_row_jvp`), which the
+    simulated roll-outs' reverse mode keeps as (E, D) per step instead of the (E, M) kernel rows:
+    at hundreds of inducing inputs the gradient then costs a few times less. Tests compare it
+    with autodiff through `k_star`."""
+    return _mean_row(s.inducing, s.inverse_lengthscales, s.signal_variance, s.mask, weights, x)
 
 
 def predict(model: SparseModel, x):

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 
 from gpguided_jax.model_based import objectives
 from gpguided_jax.model_based.data import next_of
-from gpguided_jax.model_based.gp import SparseModel, fast_variance, k_star
+from gpguided_jax.model_based.gp import SparseModel, fast_variance, k_star, mean_at, scaled
 from gpguided_jax.model_based.uncertainty import Plan, information_bonus, optimistic_outputs
 
 
@@ -38,7 +38,9 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
     upper confidence bound r + beta sigma_r before the objective reads it; one with an
     `information` weight lambda adds lambda sum_e sigma_e^2 of the dynamics' outputs to each
     decision's reward, weighed by the particle's probability of being alive when it is taken
-    (`uncertainty.optimistic_outputs`, `information_bonus`)."""
+    (`uncertainty.optimistic_outputs`, `information_bonus`). A plan that does not read the
+    variance evaluates the particles' functions by `gp.mean_at`, whose derivative is in closed
+    form, so that the reverse pass keeps (E, D) per step instead of the (E, M) kernel rows."""
     task, controller = prog.task, prog.controller
     if hallucination is not None and plan.variance is None:
         raise ValueError("an optimistic roll-out reads the model's variance factors: make its plan "
@@ -46,6 +48,7 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
     objective = objective_of(prog) if objective is None else objective
     noise_std = jnp.sqrt(model.kernels.noise_variance)  # (E,)
     hold, e = prog.hold, task.obs_dim
+    row = scaled(model)
 
     def end_probability(nxt):
         if task.end_margin is not None:
@@ -57,9 +60,12 @@ def simulate(prog, model: SparseModel, target_mean, plan: Plan, controller_param
             obs, alive = carry
             a = controller.apply(controller_params, obs)
             x = task.features(obs, a)
-            ks = k_star(model, x)
-            out = jnp.sum(ks * w, axis=-1) + target_mean
-            var = None if plan.variance is None else fast_variance(model, plan.variance, ks)
+            if plan.variance is None:  # the mean with its closed-form derivative
+                out, var = mean_at(row, w, x) + target_mean, None
+            else:  # the variance too, from the same kernel rows
+                ks = k_star(model, x)
+                out = jnp.sum(ks * w, axis=-1) + target_mean
+                var = fast_variance(model, plan.variance, ks)
             delta = out[:e] + noise_std[:e] * eps_t[:e]
             if hallucination is not None:
                 eta = jax.vmap(lambda p: controller.apply(p, obs))(hallucination) / controller.u_max
