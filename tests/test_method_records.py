@@ -1,5 +1,5 @@
-"""gp_model's and gp_critic's records on the tiny preset and every standard preset (2 seeds, the
-double pendulum 1; 2 updates, float64, as `gpguided reproduce` runs them) are those of
+"""gp_model's and gp_critic's records on the tiny preset and every standard preset (2 seeds and 2
+updates; the double pendulum 1 and 1; float64, as `gpguided reproduce` runs them) are those of
 tests/data/model_critic_records.npz, written by tests/data/make_method_records.py before their
 settings moved into their own modules: a change of structure must leave their numbers as they are.
 The tolerance allows for another CPU's vector width, no more (the file's own machine reproduces it

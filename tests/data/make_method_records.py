@@ -1,6 +1,6 @@
 """Writes tests/data/model_critic_records.npz: gp_model's and gp_critic's records on the tiny
-preset and on every standard preset, 2 seeds (0, 1; the double pendulum 0 only), 2 updates,
-float64, as `gpguided reproduce` runs them (`reproduce.reproduce`).
+preset and on every standard preset, 2 seeds (0, 1; the double pendulum 0 only), 2 updates (the
+double pendulum 1), float64, as `gpguided reproduce` runs them (`reproduce.reproduce`).
 tests/test_method_records.py checks the library against it.
 
     python tests/data/make_method_records.py [--presets ...]
@@ -21,18 +21,20 @@ PRESETS = ("tiny", "swingup", "pendulum-v1", "mountaincar-continuous", "inverted
            "inverted-double-pendulum")
 METHODS = ("gp_model", "gp_critic")
 SEEDS = (0, 1)
-# fewer seeds where one run costs minutes (the double pendulum's gp_model)
+# fewer seeds and updates where one run costs minutes (the double pendulum's gp_model)
 SEEDS_OF = {"inverted-double-pendulum": (0,)}
 NUM_UPDATES = 2
+UPDATES_OF = {"inverted-double-pendulum": 1}
 OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "model_critic_records.npz")
 
 
 def records(preset: str) -> dict[str, np.ndarray]:
     """`preset/method/field` -> (seeds, updates) for METHODS on `preset`."""
     with tempfile.TemporaryDirectory() as out_dir:
+        updates = UPDATES_OF.get(preset, NUM_UPDATES)
         reproduce.reproduce(preset, SEEDS_OF.get(preset, SEEDS), METHODS, out_dir,
-                            dtype="float64", chunk_size=NUM_UPDATES,
-                            overrides={"num_updates": NUM_UPDATES}, progress=lambda _: None)
+                            dtype="float64", chunk_size=updates,
+                            overrides={"num_updates": updates}, progress=lambda _: None)
         with np.load(os.path.join(out_dir, "results.npz")) as res:
             names = [str(m) for m in res["methods"]]
             skip = {"methods", "seeds", "num_updates", "env_steps"}
