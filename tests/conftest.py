@@ -39,6 +39,7 @@
 """
 
 import functools
+import importlib.util
 import os
 import subprocess
 import sys
@@ -63,6 +64,15 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def experiment(name: str):
+    """The script experiments/<name>.py as a fresh module (scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(name, os.path.join(ROOT, "experiments",
+                                                                     f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 LEVEL0_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
 # ... and XLA's older (non-MLIR) fusion emitters, which compile faster still than level 0 alone.
 # They round some fusions differently, so a script that compares two code paths of the library

@@ -1,11 +1,9 @@
 """`gpguided bench` end to end at tiny sizes, and the benchmark table generated from its report."""
 
-import importlib.util
 import json
-import os
 
 import pytest
-from conftest import ROOT, run_script
+from conftest import experiment, run_script
 
 pytestmark = pytest.mark.cli
 
@@ -13,10 +11,7 @@ pytestmark = pytest.mark.cli
 
 def _docs_tables(results_dir):
     """experiments/docs_tables.py, reading its result files from `results_dir`."""
-    spec = importlib.util.spec_from_file_location(
-        "docs_tables", os.path.join(ROOT, "experiments", "docs_tables.py"))
-    tables = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tables)
+    tables = experiment("docs_tables")
     tables.RESULTS = str(results_dir)
     return tables
 

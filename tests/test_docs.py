@@ -8,7 +8,6 @@ not here.)
 
 import csv
 import glob
-import importlib.util
 import math
 import os
 import re
@@ -17,13 +16,9 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import fast_compile_env
+from conftest import ROOT, experiment, fast_compile_env
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-spec = importlib.util.spec_from_file_location(
-    "docs_tables", os.path.join(ROOT, "experiments", "docs_tables.py"))
-docs_tables = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(docs_tables)
+docs_tables = experiment("docs_tables")
 
 README = os.path.join(ROOT, "README.md")
 PAGES = sorted(glob.glob(os.path.join(ROOT, "docs", "*.md")))

@@ -2,17 +2,14 @@
 medians over seeds, the default budget of SAC, refused input, the command end to end, and the
 committed race's generated block against its runs."""
 
-import importlib.util
 import json
 import os
 import statistics
 
 import pytest
-from conftest import run_script
+from conftest import experiment, run_script
 
 from gpguided_jax import cli, race
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_time_to_threshold_by_hand():
@@ -128,10 +125,7 @@ def test_the_committed_race_block_holds_the_medians_of_its_runs():
     recomputed here: each method's and cache state's seeds reaching the threshold (from each run's
     evaluations) and the median over seeds of its wall time to it (a seed that never reaches it
     counting as never)."""
-    spec = importlib.util.spec_from_file_location(
-        "docs_tables", os.path.join(ROOT, "experiments", "docs_tables.py"))
-    tables = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tables)
+    tables = experiment("docs_tables")
     path = os.path.join(tables.RESULTS, "race", "pendulum-v1", "race.json")
     with open(path) as f:
         report = json.load(f)

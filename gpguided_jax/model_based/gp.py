@@ -210,11 +210,15 @@ def scaled(model: SparseModel) -> ScaledInducing:
                           model.kernels.signal_variance, model.inducing_mask)
 
 
+def _scaled_rows(zs, inv_l, sf2, mask, x):
+    """d_em = z_m / l_e - x / l_e, (E, M, D), and the kernel rows k_em, (E, M), 0 where unused."""
+    d = zs - (x * inv_l)[:, None, :]
+    return d, jnp.where(mask, sf2[:, None] * jnp.exp(-0.5 * jnp.sum(d * d, axis=-1)), 0.0)
+
+
 @jax.custom_jvp
 def _mean_row(zs, inv_l, sf2, mask, weights, x):
-    d = zs - (x * inv_l)[:, None, :]
-    k = jnp.where(mask, sf2[:, None] * jnp.exp(-0.5 * jnp.sum(d * d, axis=-1)), 0.0)
-    return jnp.sum(k * weights, axis=-1)
+    return jnp.sum(_scaled_rows(zs, inv_l, sf2, mask, x)[1] * weights, axis=-1)
 
 
 def _mean_row_jvp(primals, tangents):
@@ -223,8 +227,7 @@ def _mean_row_jvp(primals, tangents):
     made in the forward pass, so that reverse mode keeps it instead of the (E, M) kernel rows."""
     zs, inv_l, sf2, mask, weights, x = primals
     t_zs, t_inv, t_sf2, _, t_w, t_x = tangents
-    d = zs - (x * inv_l)[:, None, :]
-    k = jnp.where(mask, sf2[:, None] * jnp.exp(-0.5 * jnp.sum(d * d, axis=-1)), 0.0)
+    d, k = _scaled_rows(zs, inv_l, sf2, mask, x)
     wk = k * weights
     out = jnp.sum(wk, axis=-1)
     g = jnp.einsum("em,emd->ed", wk, d)  # sum_m w_em k_em d_em
