@@ -865,6 +865,60 @@ def planning_table(task: str) -> str:
     return "\n".join(lines)
 
 
+def exploration_uses_table(task: str) -> str:
+    """`experiments/exploration_uses_study.py report`: each use of the model's uncertainty on
+    held-out seeds, with P(improvement) over the mean model."""
+    path = os.path.join("exploration_uses", task, "heldout_table.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        d = json.load(f)
+    measure = d["measure"]
+    lines = ["| use | its setting | seeds reaching the threshold | environment steps to it, "
+             f"median | final {measure}, mean | seeds above it at the end | P(better than the "
+             "mean model) [95% interval] |", "|---|---|---|---|---|---|---|"]
+    for r in d["rows"]:
+        final = f"{r['final_mean']:.2f}" if measure == "success rate" else f"{r['final_mean']:.1f}"
+        p, ci = r.get("p_improvement_over_mean"), r.get("p_improvement_ci")
+        setting = {k: v for k, v in r["settings"].items() if k != "model_exploration"}
+        lines.append(f"| {r['method']} | {_settings(setting) or '–'} | "
+                     f"{r['seeds_reaching']}/{r['seeds']} | "
+                     f"{_steps(r['steps_to_threshold_median'])} | {final} | "
+                     f"{r['seeds_above_at_end']}/{r['seeds']} | "
+                     + ("–" if p is None else f"{p:.2f} [{ci[0]:.2f}, {ci[1]:.2f}]") + " |")
+    lines += ["", _caption(
+        f"Held-out seeds {_seed_range(d['seeds'])}; threshold: a {measure} of {d['threshold']:g}; "
+        f"{d['budget']:,} environment steps of learning, the reward learnt; P(better) compares "
+        "the final measure over seeds with the mean model's (bootstrap interval).",
+        _source(path))]
+    return "\n".join(lines)
+
+
+def exploration_uses_tuning_table(task: str) -> str:
+    """`experiments/exploration_uses_study.py tune`: every use at each of its values on the
+    tuning seeds, and the value chosen."""
+    path = os.path.join("exploration_uses", task, "tuning.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        d = json.load(f)
+    measure = d["measure"]
+    digits = 2 if measure == "success rate" else 1
+    lines = ["| use | its setting | score (tuning seeds) | final " + measure + " | seeds reaching "
+             "the threshold | chosen |", "|---|---|---|---|---|---|"]
+    for choice, run in d["runs"].items():
+        for t in run["tried"]:
+            setting = {k: v for k, v in t["settings"].items() if k != "model_exploration"}
+            reach = sum(v is not None for v in t["steps_to"])
+            picked = t["settings"] == run["chosen"] and len(run["tried"]) > 1
+            lines.append(f"| {choice} | {_settings(setting) or '–'} | {t['score']:.{digits}f} | "
+                         f"{t['final']:.{digits}f} | {reach}/{len(t['steps_to'])} | "
+                         f"{'yes' if picked else ''} |")
+    lines += ["", _caption(f"Tuning seeds {d['seeds']}, {d['budget']:,} environment steps of "
+                           "learning per run, the reward learnt; the score is the measure's mean "
+                           "over the second half of the run.", _source(path))]
+    return "\n".join(lines)
+
+
+# with an exploration-uses study (experiments/exploration_uses_study.py: its tuning record and
+# held-out runs)
+EXPLORATION_USES_TASKS = ("mountaincar-continuous-learned",)
 # with a gp_model study (its tuning record and held-out runs)
 MODEL_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
                "inverted-double-pendulum", "swingup")
@@ -1034,6 +1088,10 @@ TABLES = {
     **{f"model_{t.replace('-', '_')}": (lambda t=t: model_table(t)) for t in MODEL_TASKS},
     **{f"model_tuning_{t.replace('-', '_')}": (lambda t=t: model_tuning_table(t))
        for t in MODEL_TASKS},
+    **{f"exploration_uses_{t.replace('-', '_')}": (lambda t=t: exploration_uses_table(t))
+       for t in EXPLORATION_USES_TASKS},
+    **{f"exploration_uses_tuning_{t.replace('-', '_')}": (
+        lambda t=t: exploration_uses_tuning_table(t)) for t in EXPLORATION_USES_TASKS},
     "headline": headline_table,
     "methods": methods_table,
     **{f"planning_ablation_{t.replace('-', '_')}": (lambda t=t: planning_ablation_table(t))

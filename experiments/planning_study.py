@@ -29,6 +29,13 @@ Stages, per task; each writes under --out (default docs/results/planning/<task>)
             rule, added after the ablation had run, because the score can pass over a part that
             reaches the threshold sooner and ends level). Writes heldout/chosen.npz and .json
             (heldout/fastest.*).
+``cost``    Where the race against SAC (`gpguided race`) needs it (`COST_TASKS`): around the
+            chosen configuration, every pair of inducing inputs and particles of `COST_GRID`
+            (gp_model's time per update grows with both; docs/benchmarks.md), on the tuning
+            seeds; `cheapest` is the one with the least wall time to the threshold (the median
+            over the seeds of the run's seconds per seed in proportion to its steps to it) of
+            those that reach it on both seeds, the chosen one on a tie. Writes cost.json; the
+            held-out stage then runs it too ('cheapest') where it is another configuration.
 ``report``  heldout_table.json: seeds reaching the threshold, environment steps and wall time to
             it, and the objective planned with, beside today's gp_model (the model study's
             held-out run of its tuned choice), SAC and PPO; and the figure.
@@ -38,6 +45,7 @@ Usage:
   python experiments/planning_study.py search --task inverted-pendulum
   python experiments/planning_study.py heldout --task inverted-pendulum
   python experiments/planning_study.py report --task inverted-pendulum
+  python experiments/planning_study.py cost --task pendulum-v1
 """
 
 from __future__ import annotations
@@ -86,6 +94,10 @@ SEARCH = {task: [("model_horizon", ["x0.5", "x2"])] for task in TASKS}
 for _task in ("inverted-pendulum", "inverted-double-pendulum"):
     SEARCH[_task] = SEARCH[_task] + [("model_end_softness", [0.3, 1.0])]
 
+# The cost stage's grid, around the chosen configuration (`cost`).
+COST_GRID = {"model_inducing": [100, 200, 400], "model_particles": [16, 32, 64]}
+COST_TASKS = ("pendulum-v1",)
+
 
 def today(task: str) -> dict:
     """The model study's tuned settings of `task` (its `chosen`)."""
@@ -105,10 +117,10 @@ def resolve(task: str, settings: dict) -> dict:
     return out
 
 
-def _evaluate(task: str, out: str, settings: dict) -> dict:
-    """One configuration on the tuning seeds (kept in runs.json as it finishes): its score, and
+def _evaluate(task: str, out: str, settings: dict, runs: str = "runs.json") -> dict:
+    """One configuration on the tuning seeds (kept in `runs` as it finishes): its score, and
     per seed the environment steps to the threshold and its wall seconds."""
-    runs_path = os.path.join(out, "runs.json")
+    runs_path = os.path.join(out, runs)
     full = MS.overrides(task, {**today(task), **resolve(task, settings)})
     key = json.dumps(full, sort_keys=True)
     done = study.read_json(runs_path, {})
@@ -187,15 +199,62 @@ def fastest(task: str, out: str) -> dict:
     return resolve(task, best["settings"])
 
 
+def _wall_to_threshold(row: dict, budget: int) -> float | None:
+    """A tuning run's wall time to the threshold: the median over its seeds of the run's seconds
+    per seed in proportion to the steps to it (the model study's measure, `MS._row`); None
+    unless every seed reaches it."""
+    steps = row["steps_to"]
+    if any(v is None for v in steps):
+        return None
+    return float(np.median([row["wall_s"] / len(steps) * v / budget for v in steps]))
+
+
+def cost(task: str, out: str) -> None:
+    """Every pair of `COST_GRID` around the chosen configuration on the tuning seeds, all run
+    here (cost_runs.json: the wall times of one code and one machine), and the cheapest."""
+    chosen = study.read_json(os.path.join(out, "tuning.json"))["chosen"]
+    budget = MS.BUDGETS[task]
+    (f1, values1), (f2, values2) = COST_GRID.items()
+    rows = []
+    for v1 in values1:
+        for v2 in values2:
+            grid_point = {f1: v1, f2: v2}
+            row = {"settings": grid_point,
+                   **_evaluate(task, out, {**chosen, **grid_point}, runs="cost_runs.json")}
+            row["wall_to_threshold_s"] = _wall_to_threshold(row, budget)
+            rows.append(row)
+            study.log(f"[{task}] cost {grid_point}: {row}")
+    own = {f: chosen.get(f, MS.config_lib.preset(task, method=METHOD, **MS.overrides(
+        task, today(task))).value(f)) for f in COST_GRID}
+    timed = [r for r in rows if r["wall_to_threshold_s"] is not None]
+    base = next(r for r in rows if r["settings"] == own)
+    best = min(timed, key=lambda r: r["wall_to_threshold_s"]) if timed else base
+    if base in timed and base["wall_to_threshold_s"] <= best["wall_to_threshold_s"]:
+        best = base
+    study.write_json(os.path.join(out, "cost.json"), {
+        "task": task, "seeds": list(study.TUNING_SEEDS), "base": chosen, "grid": COST_GRID,
+        "rows": rows, "cheapest": {**chosen, **best["settings"]}})
+    study.log(f"[{task}] cheapest: {best['settings']}")
+
+
 def heldout(task: str, out: str) -> None:
-    """The held-out runs of the chosen configuration ('chosen': the score's), and of the fastest
-    to the threshold on the tuning seeds ('fastest': `fastest`) where that is another one."""
+    """The held-out runs of the chosen configuration ('chosen': the score's), of the fastest to
+    the threshold on the tuning seeds ('fastest': `fastest`) and of the cheapest (`cost`) where
+    each is another one."""
     chosen = study.read_json(os.path.join(out, "tuning.json"))["chosen"]
     runs = {"chosen": chosen}
     quickest = fastest(task, out)
-    if MS.overrides(task, {**today(task), **quickest}) != MS.overrides(
-            task, {**today(task), **chosen}):
+
+    def same(a, b):
+        return MS.overrides(task, {**today(task), **a}) == MS.overrides(task, {**today(task), **b})
+
+    if not same(quickest, chosen):
         runs["fastest"] = quickest
+    cost_path = os.path.join(out, "cost.json")
+    if os.path.exists(cost_path):
+        cheapest = study.read_json(cost_path)["cheapest"]
+        if not any(same(cheapest, r) for r in runs.values()):
+            runs["cheapest"] = cheapest
     seeds = MS.heldout_seeds(task)
     for name, extra in runs.items():
         settings = {**today(task), **extra}
@@ -221,7 +280,8 @@ def report(task: str, out: str) -> None:
     record, threshold, measure_name = MS.measure(task)
     rows, curves = [], {}
     for name, label in (("chosen", "gp_model (planning parts, by score)"),
-                        ("fastest", "gp_model (planning parts, by steps to it)")):
+                        ("fastest", "gp_model (planning parts, by steps to it)"),
+                        ("cheapest", "gp_model (planning parts, by wall time to it)")):
         path = os.path.join(out, "heldout", name)
         if not os.path.exists(path + ".json"):
             continue
@@ -272,12 +332,15 @@ def report(task: str, out: str) -> None:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("stage", choices=("ablate", "search", "heldout", "report"))
+    p.add_argument("stage", choices=("ablate", "search", "cost", "heldout", "report"))
     p.add_argument("--task", choices=TASKS, default="inverted-pendulum")
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
+    if args.stage == "cost" and args.task not in COST_TASKS:
+        p.error(f"the cost stage runs on {', '.join(COST_TASKS)}, not {args.task}")
     out = study.set_up(args.out or os.path.join(ROOT, "docs", "results", "planning", args.task))
-    {"ablate": ablate, "search": search, "heldout": heldout, "report": report}[args.stage](
+    {"ablate": ablate, "search": search, "cost": cost, "heldout": heldout, "report": report}[
+        args.stage](
         args.task, out)
     return 0
 
