@@ -833,6 +833,31 @@ def planning_ablation_table(task: str) -> str:
     return "\n".join(lines)
 
 
+def planning_cost_table(task: str) -> str:
+    """`experiments/planning_study.py cost`: inducing inputs x particles around the chosen
+    configuration on the tuning seeds, with the wall time to the threshold."""
+    path = os.path.join("planning", task, "cost.json")
+    with open(os.path.join(RESULTS, path)) as f:
+        d = json.load(f)
+    fields = list(d["grid"])
+    lines = ["| " + " | ".join(fields) + " | score (tuning seeds) | environment steps to the "
+             "threshold | wall time of the run | wall time to the threshold, median | "
+             "cheapest |", "|" + "---|" * (len(fields) + 5)]
+    cheapest = {f: d["cheapest"][f] for f in fields}
+    for r in d["rows"]:
+        reach = [v for v in r["steps_to"] if v is not None]
+        wall = r["wall_to_threshold_s"]
+        lines.append("| " + " | ".join(str(r["settings"][f]) for f in fields)
+                     + f" | {r['score']:.1f} | {', '.join(f'{v:,}' for v in reach) or '–'} | "
+                     f"{r['wall_s']:.0f} s | {'–' if wall is None else f'{wall:.1f} s'} | "
+                     f"{'yes' if r['settings'] == cheapest else ''} |")
+    others = {k: v for k, v in d["base"].items() if k not in fields}
+    lines += ["", _caption(f"Tuning seeds {d['seeds']}, the two seeds of a run one after the "
+                           "other in one program, compilation included; around the chosen "
+                           f"configuration ({_settings(others)}).", _source(path))]
+    return "\n".join(lines)
+
+
 def planning_table(task: str) -> str:
     """`experiments/planning_study.py report`: the chosen parts on held-out seeds beside today's
     gp_model, SAC and PPO, with the objective each planned with."""
@@ -918,12 +943,13 @@ def exploration_uses_tuning_table(task: str) -> str:
 
 # with an exploration-uses study (experiments/exploration_uses_study.py: its tuning record and
 # held-out runs)
-EXPLORATION_USES_TASKS = ("mountaincar-continuous-learned",)
+EXPLORATION_USES_TASKS: tuple[str, ...] = ()
 # with a gp_model study (its tuning record and held-out runs)
 MODEL_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
                "inverted-double-pendulum", "swingup")
 # with a planning study (experiments/planning_study.py: its ablation, search and held-out runs)
 PLANNING_TASKS = ("inverted-pendulum", "swingup", "pendulum-v1", "mountaincar-continuous")
+PLANNING_COST_TASKS = ("pendulum-v1",)  # with the planning study's cost stage
 # The methods at a glance (README.md and the site's home page): per registered method, what its
 # GP models, what it is good for, and the command that runs it as tuned.
 METHODS_AT_A_GLANCE = {
@@ -985,12 +1011,14 @@ def headline_rows() -> list[dict]:
             choice = json.load(f)["chosen"]["model_exploration"]
         rows = {r["method"]: r for r in d["rows"]}
         gp_model = rows[f"gp_model ({choice})"]
-        # the preset holds the planning study's choice where it ran: its held-out row
+        # the preset holds the planning study's choice where it ran: its held-out row (that of
+        # its cost stage's cheapest where that ran)
         planning = os.path.join(RESULTS, "planning", task, "heldout_table.json")
         if os.path.exists(planning):
             with open(planning) as f:
-                gp_model = next(r for r in json.load(f)["rows"]
-                                if r["method"] == "gp_model (planning parts, by score)")
+                planned = {r["method"]: r for r in json.load(f)["rows"]}
+            gp_model = planned.get("gp_model (planning parts, by wall time to it)",
+                                   planned["gp_model (planning parts, by score)"])
         out.append(dict(task=task, label=label, measure=d["measure"], threshold=d["threshold"],
                         seeds=d["seeds"], choice=choice, gp_model=gp_model,
                         paper=rows[d["paper_best"]], sac=rows["sac"], ppo=rows["ppo"]))
@@ -1097,6 +1125,8 @@ TABLES = {
     **{f"planning_ablation_{t.replace('-', '_')}": (lambda t=t: planning_ablation_table(t))
        for t in PLANNING_TASKS},
     **{f"planning_{t.replace('-', '_')}": (lambda t=t: planning_table(t)) for t in PLANNING_TASKS},
+    **{f"planning_cost_{t.replace('-', '_')}": (lambda t=t: planning_cost_table(t))
+       for t in PLANNING_COST_TASKS},
 }
 BLOCK = re.compile(r"(<!-- generated: (\w+) -->\n)(.*?)(<!-- end: \2 -->)", re.S)
 

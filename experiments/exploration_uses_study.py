@@ -179,6 +179,16 @@ def chosen(task: str, out: str) -> dict[str, dict]:
     return {choice: runs[choice]["chosen"] for choice in grid(task) if choice in runs}
 
 
+def preset_choice(task: str, out: str) -> dict:
+    """The settings the task's preset holds (`model_based.method.PRESETS`): of every choice's
+    tuned configuration, the one with the best score on the tuning seeds (the comparisons with
+    the task's stated reward, '*_stated', are not candidates: the preset learns the reward)."""
+    runs = study.read_json(os.path.join(out, "tuning.json"))["runs"]
+    best = max((t for choice, r in runs.items() if not choice.endswith("_stated")
+                for t in r["tried"] if t["settings"] == r["chosen"]), key=study.by_score)
+    return best["settings"]
+
+
 def visits(task: str, settings: dict, run_dir: str, updates_shown: int = VISIT_UPDATES,
            num_seeds: int | None = None):
     """The observations of the first `updates_shown` updates' episodes of a finished run whose

@@ -116,10 +116,15 @@ PAPER = tuple(f"{m}{end}" for end in ("", "_restart") for m in config_lib.PAPER_
 
 def planned(task: str) -> dict:
     """The settings the planning study chose for `task` on top of this study's
-    (docs/results/planning/<task>/tuning.json's `chosen`; experiments/planning_study.py), which
-    the preset holds too: {} where it has not run."""
-    path = os.path.join(ROOT, "docs", "results", "planning", task, "tuning.json")
-    return study.read_json(path, {}).get("chosen", {}) if os.path.exists(path) else {}
+    (experiments/planning_study.py: its cost stage's cheapest, docs/results/planning/<task>/
+    cost.json, where it ran, else its tuning.json's `chosen`), which the preset holds too: {}
+    where it has not run."""
+    folder = os.path.join(ROOT, "docs", "results", "planning", task)
+    for name, key in (("cost.json", "cheapest"), ("tuning.json", "chosen")):
+        path = os.path.join(folder, name)
+        if os.path.exists(path):
+            return study.read_json(path)[key]
+    return {}
 
 
 def base(task: str) -> dict:

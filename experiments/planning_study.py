@@ -36,6 +36,8 @@ Stages, per task; each writes under --out (default docs/results/planning/<task>)
             over the seeds of the run's seconds per seed in proportion to its steps to it) of
             those that reach it on both seeds, the chosen one on a tie. Writes cost.json; the
             held-out stage then runs it too ('cheapest') where it is another configuration.
+``float32`` Where the cost stage ran: the preset's configuration on the held-out seeds in
+            float32 (heldout/preset_float32.*), beside its float64 row.
 ``report``  heldout_table.json: seeds reaching the threshold, environment steps and wall time to
             it, and the objective planned with, beside today's gp_model (the model study's
             held-out run of its tuned choice), SAC and PPO; and the figure.
@@ -255,21 +257,31 @@ def heldout(task: str, out: str) -> None:
         cheapest = study.read_json(cost_path)["cheapest"]
         if not any(same(cheapest, r) for r in runs.values()):
             runs["cheapest"] = cheapest
-    seeds = MS.heldout_seeds(task)
     for name, extra in runs.items():
-        settings = {**today(task), **extra}
-        meta = {"seeds": seeds, "settings": settings}
-        path = os.path.join(out, "heldout", name)
-        if study.finished(path + ".json", **meta):
-            study.log(f"[{task}] done with these seeds and settings: {path}.json")
-            continue
-        run = study.run_method(task, METHOD, seeds, os.path.join(out, "runs", name),
-                               MS.overrides(task, settings), chunk_size=1)
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        np.savez(path + ".npz", steps=run.env_steps, measure=run.records[MS.measure(task)[0]],
-                 model_error=run.records["model_error"],
-                 model_return=run.records["model_return"])
-        study.write_json(path + ".json", {**meta, "wall_s": run.wall_s})
+        _heldout_run(task, out, name, {**today(task), **extra})
+
+
+def _heldout_run(task: str, out: str, name: str, settings: dict, dtype: str = "float64") -> None:
+    """One configuration on the held-out seeds: heldout/<name>.npz and .json."""
+    seeds = MS.heldout_seeds(task)
+    meta = {"seeds": seeds, "settings": settings, **({"dtype": dtype} if dtype != "float64" else {})}
+    path = os.path.join(out, "heldout", name)
+    if study.finished(path + ".json", **meta):
+        study.log(f"[{task}] done with these seeds and settings: {path}.json")
+        return
+    run = study.run_method(task, METHOD, seeds, os.path.join(out, "runs", name),
+                           MS.overrides(task, settings), dtype=dtype, chunk_size=1)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    np.savez(path + ".npz", steps=run.env_steps, measure=run.records[MS.measure(task)[0]],
+             model_error=run.records["model_error"],
+             model_return=run.records["model_return"])
+    study.write_json(path + ".json", {**meta, "wall_s": run.wall_s})
+
+
+def float32(task: str, out: str) -> None:
+    """The preset's configuration (`MS.planned` over today's) on the held-out seeds in float32:
+    heldout/preset_float32.*, beside its float64 row."""
+    _heldout_run(task, out, "preset_float32", {**today(task), **MS.planned(task)}, "float32")
 
 
 def objective_of(settings: dict) -> str:
@@ -281,7 +293,8 @@ def report(task: str, out: str) -> None:
     rows, curves = [], {}
     for name, label in (("chosen", "gp_model (planning parts, by score)"),
                         ("fastest", "gp_model (planning parts, by steps to it)"),
-                        ("cheapest", "gp_model (planning parts, by wall time to it)")):
+                        ("cheapest", "gp_model (planning parts, by wall time to it)"),
+                        ("preset_float32", "gp_model (the preset, float32)")):
         path = os.path.join(out, "heldout", name)
         if not os.path.exists(path + ".json"):
             continue
@@ -332,15 +345,15 @@ def report(task: str, out: str) -> None:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("stage", choices=("ablate", "search", "cost", "heldout", "report"))
+    p.add_argument("stage", choices=("ablate", "search", "cost", "heldout", "float32", "report"))
     p.add_argument("--task", choices=TASKS, default="inverted-pendulum")
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
-    if args.stage == "cost" and args.task not in COST_TASKS:
-        p.error(f"the cost stage runs on {', '.join(COST_TASKS)}, not {args.task}")
+    if args.stage in ("cost", "float32") and args.task not in COST_TASKS:
+        p.error(f"the {args.stage} stage runs on {', '.join(COST_TASKS)}, not {args.task}")
     out = study.set_up(args.out or os.path.join(ROOT, "docs", "results", "planning", args.task))
-    {"ablate": ablate, "search": search, "cost": cost, "heldout": heldout, "report": report}[
-        args.stage](
+    {"ablate": ablate, "search": search, "cost": cost, "heldout": heldout, "float32": float32,
+     "report": report}[args.stage](
         args.task, out)
     return 0
 

@@ -67,11 +67,16 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def experiment(name: str):
-    """The script experiments/<name>.py as a fresh module (scripts, not a package)."""
-    spec = importlib.util.spec_from_file_location(name, os.path.join(ROOT, "experiments",
-                                                                     f"{name}.py"))
+    """The script experiments/<name>.py as a fresh module (scripts, not a package; the scripts it
+    imports by name, as `model_study`, are found beside it while it loads)."""
+    folder = os.path.join(ROOT, "experiments")
+    spec = importlib.util.spec_from_file_location(name, os.path.join(folder, f"{name}.py"))
     module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    sys.path.insert(0, folder)
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(folder)
     return module
 LEVEL0_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
 # ... and XLA's older (non-MLIR) fusion emitters, which compile faster still than level 0 alone.

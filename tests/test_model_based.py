@@ -716,3 +716,39 @@ def test_a_run_resumed_from_its_checkpoint_equals_one_uninterrupted(tmp_path):
         assert np.isfinite(a[k][0]).all(), k
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
     assert np.asarray(a["model_data"])[0, :, -1].min() > np.asarray(a["model_data"])[0, :, 1].max()
+
+
+def test_the_cost_stage_s_cheapest_is_the_least_wall_time_to_the_threshold_and_the_preset():
+    """experiments/planning_study.py's cost stage (docs/results/planning/<task>/cost.json): every
+    pair of its committed grid ran once; its `cheapest` is recomputed here from each run's own
+    steps to the threshold and wall seconds (the median over the seeds of the run's seconds per
+    seed times steps to it over the budget, among the runs reaching it on every seed), and the
+    preset holds it."""
+    import itertools
+    import json
+    import os
+
+    from conftest import ROOT, experiment
+
+    planning = experiment("planning_study")
+    for task in planning.COST_TASKS:
+        path = os.path.join(ROOT, "docs", "results", "planning", task, "cost.json")
+        with open(path) as f:
+            record = json.load(f)
+        assert record["grid"] == planning.COST_GRID
+        fields = list(planning.COST_GRID)
+        ran = [tuple(r["settings"][k] for k in fields) for r in record["rows"]]
+        assert sorted(ran) == sorted(itertools.product(*planning.COST_GRID.values()))
+        budget = planning.MS.BUDGETS[task]
+        times = {}
+        for r, key in zip(record["rows"], ran):
+            steps = r["steps_to"]
+            if all(v is not None for v in steps):
+                times[key] = sorted(r["wall_s"] / len(steps) * v / budget for v in steps)
+                n = len(steps)
+                times[key] = (times[key][(n - 1) // 2] + times[key][n // 2]) / 2
+        assert times, "no configuration reached the threshold on every tuning seed"
+        best = min(times, key=times.get)
+        assert {k: record["cheapest"][k] for k in fields} == dict(zip(fields, best))
+        preset = C.METHOD_PRESETS[task]["gp_model"]
+        assert {k: preset[k] for k in fields} == dict(zip(fields, best))

@@ -453,3 +453,31 @@ def test_the_study_s_grid_covers_every_use_from_the_model_study_s_settings():
                     if k not in c and k not in study.FIXED[task]:
                         assert cfg.value(k) == pytest.approx(v), (task, choice, k)
         assert len(study.heldout_seeds(task)) == (20 if task == "swingup-learned" else 10)
+
+
+def test_a_preset_the_study_chose_runs_its_choice_with_the_study_s_settings():
+    """Where experiments/exploration_uses_study.py's tuning ran
+    (docs/results/exploration_uses/<task>/tuning.json), `--preset <task> --methods gp_model` runs
+    the configuration the study runs for the use with the best score on the tuning seeds (each
+    use at its chosen value; the stated-reward comparisons are not candidates)."""
+    import json
+    import os
+
+    from conftest import ROOT
+
+    study = _exploration_uses_study()
+    checked = 0
+    for task in study.TASKS:
+        path = os.path.join(ROOT, "docs", "results", "exploration_uses", task, "tuning.json")
+        if not os.path.exists(path):
+            continue
+        with open(path) as f:
+            runs = json.load(f)["runs"]
+        scored = [(t["score"], t["settings"]) for choice, r in runs.items()
+                  if not choice.endswith("_stated") for t in r["tried"]
+                  if t["settings"] == r["chosen"]]
+        best = max(scored, key=lambda st: st[0])[1]
+        cfg = C.preset(task, method="gp_model", **study.overrides(task, best))
+        assert cfg.to_json_dict() == C.preset(task, method="gp_model").to_json_dict(), task
+        checked += 1
+    assert checked, "no task of the study has its tuning record"

@@ -166,11 +166,12 @@ PRESETS = {
                 "min_std": 0.05, "eval_episodes": 10, "model_horizon": 6.0, "num_updates": 11,
                 "model_exploration": "thompson"},
     # 2,000 steps; the planning study's linear plus RBF controller, particles half from visited
-    # starts, fresh draws at every step
+    # starts, fresh draws at every step, and its cost stage's model and particles (the least
+    # wall time to the threshold)
     "pendulum-v1": {"episodes_per_update": 1, "num_updates": 11, "init_log_std": 0.0,
                     "min_std": 0.05, "eval_episodes": 10, "model_exploration": "thompson",
                     "model_horizon": 2.0, "model_learning_rate": 0.03, "model_steps": 200,
-                    "model_inducing": 400, "controller": "linear_rbf", "model_particles": 64,
+                    "model_inducing": 100, "controller": "linear_rbf", "model_particles": 16,
                     "model_visited_starts": 0.5, "model_fresh_draws": True},
     # 10 episodes, decisions held 5 steps; the planning study's trainable RBF network, particles
     # half from visited starts and the longer search
@@ -195,14 +196,22 @@ PRESETS = {
 
 
 # The presets of experiments/exploration_uses_study.py: the car and the swing-up with the reward
-# learnt (the config presets set `model_reward`), the sparse swing-up at each action cost. Their
-# settings are placeholders until that study's tuning chooses them: the model study's preset of
-# the same task (the sparse swing-up: Pendulum-v1's, its 20 learning episodes and roll-outs long
-# enough to swing up in), under the use each study is about, at beta 1.
+# learnt (the config presets set `model_reward`), the sparse swing-up at each action cost.
 PRESETS.update({
-    "mountaincar-continuous-learned": {**PRESETS["mountaincar-continuous"],
-                                       "model_exploration": "optimistic_reward",
-                                       "model_beta": 1.0},
+    # the study's settings (the model study's tuned ones, before the planning parts) and the use
+    # with the best score on its tuning seeds (`exploration_uses_study.preset_choice`)
+    "mountaincar-continuous-learned": {"episodes_per_update": 1, "hold_time": 5.0,
+                                       "init_log_std": 0.0, "min_std": 0.05, "eval_episodes": 5,
+                                       "model_horizon": 200.0, "model_end_softness": 1.0,
+                                       "num_updates": 11, "controller": "rbf",
+                                       "model_particles": 16, "model_visited_starts": 0.0,
+                                       "model_steps": 100, "model_final_rate": 1.0,
+                                       "model_keep_best": False, "model_beta": 1.0,
+                                       "model_exploration": "information",
+                                       "model_information_weight": 20.0},
+    # placeholders until the study's tuning chooses them: the model study's preset of the same
+    # task (the sparse swing-up: Pendulum-v1's, its 20 learning episodes and roll-outs long enough
+    # to swing up in), under the use each study is about, at beta 1
     "swingup-learned": {**PRESETS["swingup"], "model_exploration": "optimistic_reward",
                         "model_beta": 1.0},
     **{f"pendulum-sparse-{c:g}": {**PRESETS["pendulum-v1"], "num_updates": 21,
