@@ -285,6 +285,16 @@ def _visits_figure(task: str, out: str, choices: list[str]) -> str:
     return figure
 
 
+def found_reward(task: str, obs, kept) -> np.ndarray:
+    """(seeds, updates) whether an update's episode found where the reward is paid: it visited
+    the region `PLANES` marks, or it ended before its last decision (the car's only end is its
+    goal, reached after the last decision the buffer keeps)."""
+    plane, _, _, goal = PLANES[task]
+    x, y = plane(obs)
+    inside = (x >= goal[0][0]) & (x <= goal[0][1]) & (y >= goal[1][0]) & (y <= goal[1][1])
+    return np.any(inside & kept, axis=-1) | (kept.sum(-1) < kept.shape[-1])
+
+
 def report(task: str, out: str) -> None:
     record, threshold, measure_name = measure(task)
     rows, curves, seeds = [], {}, None
@@ -299,6 +309,15 @@ def report(task: str, out: str) -> None:
         seeds = meta["seeds"]
         rows.append({**MS._row(choice, *curves[choice], threshold, meta["wall_s"], seeds),
                      "settings": picks[choice]})
+        if os.path.exists(p + "_visits.npz"):
+            # whether the first update's episode (the exploratory one, before any planning: the
+            # same for every use) found the reward, and whether a later one did
+            with np.load(p + "_visits.npz") as f:
+                found = found_reward(task, f["obs"], f["kept"])
+            reached = np.isfinite(study.steps_to(*curves[choice], threshold, never=np.nan))
+            rows[-1].update(found_first=int(found[:, 0].sum()),
+                            found_later=int((~found[:, 0] & found[:, 1:].any(1)).sum()),
+                            reaching_not_found_first=int((reached & ~found[:, 0]).sum()))
     # each choice against the mean model (with the same reward): P(choice > mean) of the final
     # measure over seeds, and its bootstrap interval
     for row in rows:
@@ -323,7 +342,7 @@ def report(task: str, out: str) -> None:
     visits_figure = _visits_figure(task, out, shown) if shown else None
     study.write_json(os.path.join(out, "heldout_table.json"), {
         "task": task, "threshold": threshold, "measure": measure_name, "seeds": seeds,
-        "budget": BUDGETS[task], "rows": rows})
+        "budget": BUDGETS[task], "visit_updates": VISIT_UPDATES, "rows": rows})
     study.log(f"wrote {figure}, {visits_figure} and {out}/heldout_table.json")
 
 

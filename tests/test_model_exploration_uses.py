@@ -481,3 +481,25 @@ def test_a_preset_the_study_chose_runs_its_choice_with_the_study_s_settings():
         assert cfg.to_json_dict() == C.preset(task, method="gp_model").to_json_dict(), task
         checked += 1
     assert checked, "no task of the study has its tuning record"
+
+
+def test_an_episode_found_the_reward_where_it_entered_the_paid_region_or_ended_early():
+    """`exploration_uses_study.found_reward`, on hand-made buffers of the car (the goal at
+    position 0.45 or more, its only end) and of the sparse swing-up (paid within about 18 degrees
+    of upright and 0.5 rad/s of still, no end)."""
+    study = _exploration_uses_study()
+    n = 6
+    obs = np.zeros((2, 3, n, 2))
+    kept = np.ones((2, 3, n), bool)
+    obs[0, 1, 2] = (0.5, 0.0)        # seed 0, update 1: a decision in the goal's region
+    kept[1, 2, 4:] = False           # seed 1, update 2: the episode ended after 4 decisions
+    obs[0, 2, 3] = (0.5, 0.0)        # seed 0, update 2: in the region, but not kept
+    kept[0, 2, 3] = False            # (an update's episode shorter than the others: it ended)
+    obs[1, 1, 3] = (0.4, 0.0)        # seed 1, update 1: short of the goal
+    found = study.found_reward("mountaincar-continuous-learned", obs, kept)
+    assert found.tolist() == [[False, True, True], [False, False, True]]
+    sparse = study.SPARSE[0]
+    theta = np.array([0.0, 0.2, 0.4, np.pi])  # upright, within the region, outside, hanging
+    pend = np.stack([np.cos(theta), np.sin(theta), np.array([0.0, 0.3, 0.0, 0.0])], -1)
+    got = study.found_reward(sparse, pend[:, None, None, :], np.ones((4, 1, 1), bool))
+    assert got[:, 0].tolist() == [True, True, False, False]
