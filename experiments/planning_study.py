@@ -228,11 +228,10 @@ def cost(task: str, out: str) -> None:
             study.log(f"[{task}] cost {grid_point}: {row}")
     own = {f: chosen.get(f, MS.config_lib.preset(task, method=METHOD, **MS.overrides(
         task, today(task))).value(f)) for f in COST_GRID}
-    timed = [r for r in rows if r["wall_to_threshold_s"] is not None]
     base = next(r for r in rows if r["settings"] == own)
-    best = min(timed, key=lambda r: r["wall_to_threshold_s"]) if timed else base
-    if base in timed and base["wall_to_threshold_s"] <= best["wall_to_threshold_s"]:
-        best = base
+    timed = [r for r in rows if r["wall_to_threshold_s"] is not None] or [base]
+    # the least wall time to the threshold, the chosen configuration on a tie
+    best = min(timed, key=lambda r: (r["wall_to_threshold_s"] or 0.0, r is not base))
     study.write_json(os.path.join(out, "cost.json"), {
         "task": task, "seeds": list(study.TUNING_SEEDS), "base": chosen, "grid": COST_GRID,
         "rows": rows, "cheapest": {**chosen, **best["settings"]}})

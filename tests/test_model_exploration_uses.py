@@ -409,21 +409,9 @@ def test_the_presets_of_the_exploration_uses_study_are_the_tasks_it_asks_about()
 
 
 def _exploration_uses_study():
-    import importlib.util
-    import os
-    import sys
+    from conftest import experiment
 
-    experiments = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                               "experiments")
-    sys.path.insert(0, experiments)  # it imports model_study and planning_study by name
-    try:
-        spec = importlib.util.spec_from_file_location(
-            "exploration_uses_study", os.path.join(experiments, "exploration_uses_study.py"))
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(experiments)
-    return module
+    return experiment("exploration_uses_study")  # it imports model_study and planning_study
 
 
 def test_the_study_s_grid_covers_every_use_from_the_model_study_s_settings():
