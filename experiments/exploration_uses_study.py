@@ -3,7 +3,8 @@ model's uncertainty (`model_based.EXPLORATIONS`: today's mean, sample, thompson 
 optimistic_reward, optimistic_joint and information; docs/design.md#model) on tasks whose reward
 the model must find, by the protocol of `gpguided_jax.study`, extending the model study's
 (experiments/model_study.py: its budgets, measures, held-out seeds and table rows) from its tuned
-settings (experiments/planning_study.py's `today`: docs/results/model/<task>/tuning.json).
+settings (experiments/planning_study.py's `today`: docs/results/model/<task>/tuning.json; the
+sparse swing-up from Pendulum-v1's preset, the planning study's choice included).
 
 The tasks (each a preset, `config.PRESETS`; `BASE_TASK`: the model study's task it extends):
 
@@ -124,9 +125,12 @@ def updates(task: str) -> int:
 def overrides(task: str, settings: dict) -> dict:
     """A run's config overrides: the preset's own values of the fields gp_model's preset of
     `task` sets (its placeholders never enter a run), the model study's tuned configuration of
-    the base task (`MS.overrides` of `PS.today`), the budget's updates, `FIXED` and `settings`."""
+    the base task (`MS.overrides` of `PS.today`; on the sparse swing-up with the planning study's
+    choice as well, `MS.planned`: Pendulum-v1's preset as it stands, from which the sparse task's
+    own derives), the budget's updates, `FIXED` and `settings`."""
     base = BASE_TASK[task]
-    return {**study.preset_own(task, METHOD), **MS.overrides(base, PS.today(base)),
+    tuned = {**PS.today(base), **(MS.planned(base) if task in SPARSE else {})}
+    return {**study.preset_own(task, METHOD), **MS.overrides(base, tuned),
             "num_updates": updates(task), **FIXED[task], **settings}
 
 
