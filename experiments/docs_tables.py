@@ -890,6 +890,11 @@ def planning_table(task: str) -> str:
     return "\n".join(lines)
 
 
+def _stated(rows) -> bool:
+    """Whether an exploration-uses table holds a comparison with the task's stated reward."""
+    return any(r["method"].endswith("_stated") for r in rows)
+
+
 def exploration_uses_table(task: str) -> str:
     """`experiments/exploration_uses_study.py report`: each use of the model's uncertainty on
     held-out seeds, with P(improvement) over the mean model."""
@@ -915,8 +920,10 @@ def exploration_uses_table(task: str) -> str:
                         f"{r['reaching_not_found_first']} |" if "found_first" in r else "– | – |"))
     lines += ["", _caption(
         f"Held-out seeds {_seed_range(d['seeds'])}; threshold: a {measure} of {d['threshold']:g}; "
-        f"{d['budget']:,} environment steps of learning, the reward learnt; P(better) compares "
-        "the final measure over seeds with the mean model's (bootstrap interval); an episode "
+        f"{d['budget']:,} environment steps of learning, the reward learnt"
+        + (" (the rows '*_stated': the task's stated reward)" if _stated(d["rows"]) else "")
+        + "; P(better) compares the final measure over seeds with the mean model's with the "
+        "same reward (bootstrap interval); an episode "
         "found the reward where it entered the region that pays it, or ended at the goal, "
         f"within the first {d.get('visit_updates', 5)} updates.",
         _source(path))]
@@ -941,9 +948,11 @@ def exploration_uses_tuning_table(task: str) -> str:
             lines.append(f"| {choice} | {_settings(setting) or '–'} | {t['score']:.{digits}f} | "
                          f"{t['final']:.{digits}f} | {reach}/{len(t['steps_to'])} | "
                          f"{'yes' if picked else ''} |")
+    stated = " (the rows '*_stated': the task's stated reward)" if _stated(
+        [{"method": c} for c in d["runs"]]) else ""
     lines += ["", _caption(f"Tuning seeds {d['seeds']}, {d['budget']:,} environment steps of "
-                           "learning per run, the reward learnt; the score is the measure's mean "
-                           "over the second half of the run.", _source(path))]
+                           f"learning per run, the reward learnt{stated}; the score is the "
+                           "measure's mean over the second half of the run.", _source(path))]
     return "\n".join(lines)
 
 
