@@ -44,6 +44,7 @@ Usage (the tasks: `TASKS`):
   python experiments/exploration_uses_study.py tune --task pendulum-sparse-0.1
   python experiments/exploration_uses_study.py heldout --task pendulum-sparse-0.1
   python experiments/exploration_uses_study.py heldout --task pendulum-sparse-0.1 --only mean
+  python experiments/exploration_uses_study.py tune --task pendulum-sparse-0.1 --only mean_stated
   python experiments/exploration_uses_study.py report --task pendulum-sparse-0.1
 """
 
@@ -159,9 +160,10 @@ def _score(task: str, steps: np.ndarray):
     return score
 
 
-def tune(task: str, out: str) -> None:
+def tune(task: str, out: str, only=None) -> None:
     """Each choice's configurations on the tuning seeds, one `sweep_stage` (its values differ in
-    one traced setting), recorded choice by choice (`study.run_parts`)."""
+    one traced setting), recorded choice by choice (`study.run_parts`); `only`: these choices
+    first (the record keeps the grid's order)."""
 
     def run(choice, configs):
         full = [overrides(task, c) for c in configs]
@@ -173,8 +175,13 @@ def tune(task: str, out: str) -> None:
 
     header = {"task": task, "seeds": list(study.TUNING_SEEDS), "base": overrides(task, {}),
               "budget": BUDGETS[task], "measure": measure(task)[2]}
-    study.run_parts(os.path.join(out, "tuning.json"), header, grid(task), run,
+    everything = grid(task)
+    path = os.path.join(out, "tuning.json")
+    study.run_parts(path, header, {c: everything[c] for c in (only or everything)}, run,
                     settings_key="grid")
+    rec = study.read_json(path)
+    rec["runs"] = {c: rec["runs"][c] for c in everything if c in rec["runs"]}
+    study.write_json(path, rec)
 
 
 def chosen(task: str, out: str) -> dict[str, dict]:
@@ -357,12 +364,15 @@ def main(argv=None) -> int:
     p.add_argument("--task", choices=TASKS, default="pendulum-sparse-0.1")
     p.add_argument("--out", default=None)
     p.add_argument("--only", nargs="+", default=None,
-                   help="heldout: these choices (default: every one of the task's grid)")
+                   help="tune, heldout: these choices (default: every one of the task's grid)")
     args = p.parse_args(argv)
     out = study.set_up(args.out or os.path.join(ROOT, "docs", "results", "exploration_uses",
                                                 args.task))
+    if args.only and set(args.only) - set(grid(args.task)):
+        p.error(f"--only: {sorted(set(args.only) - set(grid(args.task)))} not in the grid of "
+                f"{args.task}: {list(grid(args.task))}")
     if args.stage == "tune":
-        tune(args.task, out)
+        tune(args.task, out, args.only)
     elif args.stage == "heldout":
         heldout(args.task, out, args.only or list(grid(args.task)))
     else:
