@@ -299,11 +299,19 @@ def _visits_figure(task: str, out: str, choices: list[str]) -> str:
 def found_reward(task: str, obs, kept) -> np.ndarray:
     """(seeds, updates) whether an update's episode found where the reward is paid: it visited
     the region `PLANES` marks, or it ended before its last decision (the car's only end is its
-    goal, reached after the last decision the buffer keeps)."""
+    goal, reached after the last decision the buffer keeps). An episode of which the buffer
+    keeps no decision (overwritten: `known_episodes`) has not found it."""
     plane, _, _, goal = PLANES[task]
     x, y = plane(obs)
     inside = (x >= goal[0][0]) & (x <= goal[0][1]) & (y >= goal[1][0]) & (y <= goal[1][1])
-    return np.any(inside & kept, axis=-1) | (kept.sum(-1) < kept.shape[-1])
+    ended = known_episodes(kept) & (kept.sum(-1) < kept.shape[-1])
+    return np.any(inside & kept, axis=-1) | ended
+
+
+def known_episodes(kept) -> np.ndarray:
+    """(seeds, updates) whether the run's final buffer keeps any decision of an update's episode
+    (a ring buffer smaller than the run's decisions has overwritten the first ones)."""
+    return np.asarray(kept).any(-1)
 
 
 def report(task: str, out: str) -> None:
@@ -325,10 +333,14 @@ def report(task: str, out: str) -> None:
             # same for every use) found the reward, and whether a later one did
             with np.load(p + "_visits.npz") as f:
                 found = found_reward(task, f["obs"], f["kept"])
+                known = known_episodes(f["kept"])
             reached = np.isfinite(study.steps_to(*curves[choice], threshold, never=np.nan))
-            rows[-1].update(found_first=int(found[:, 0].sum()),
-                            found_later=int((~found[:, 0] & found[:, 1:].any(1)).sum()),
-                            reaching_not_found_first=int((reached & ~found[:, 0]).sum()))
+            if known[:, 0].all():
+                rows[-1].update(found_first=int(found[:, 0].sum()),
+                                found_later=int((~found[:, 0] & found[:, 1:].any(1)).sum()),
+                                reaching_not_found_first=int((reached & ~found[:, 0]).sum()))
+            else:  # the first episodes overwritten: whether any later one found it
+                rows[-1].update(found_after_first=int(found[:, 1:].any(1).sum()))
     # each choice against the mean model (with the same reward): P(choice > mean) of the final
     # measure over seeds, and its bootstrap interval
     for row in rows:

@@ -496,3 +496,9 @@ def test_an_episode_found_the_reward_where_it_entered_the_paid_region_or_ended_e
     pend = np.stack([np.cos(theta), np.sin(theta), np.array([0.0, 0.3, 0.0, 0.0])], -1)
     got = study.found_reward(sparse, pend[:, None, None, :], np.ones((4, 1, 1), bool))
     assert got[:, 0].tolist() == [True, True, False, False]
+    # an episode the buffer no longer holds (overwritten) has not found it, and is not known
+    gone = np.zeros((1, 2, n), bool)
+    gone[0, 1] = True
+    assert study.found_reward("mountaincar-continuous-learned", np.zeros((1, 2, n, 2)),
+                              gone).tolist() == [[False, False]]
+    assert study.known_episodes(gone).tolist() == [[False, True]]
