@@ -193,8 +193,12 @@ def chosen(task: str, out: str) -> dict[str, dict]:
 def preset_choice(task: str, out: str) -> dict:
     """The settings the task's preset holds (`model_based.method.PRESETS`): of every choice's
     tuned configuration, the one with the best score on the tuning seeds (the comparisons with
-    the task's stated reward, '*_stated', are not candidates: the preset learns the reward)."""
+    the task's stated reward, '*_stated', are not candidates: the preset learns the reward);
+    ValueError where the tuning has not run every one of them."""
     runs = study.read_json(os.path.join(out, "tuning.json"))["runs"]
+    missing = [c for c in grid(task) if not c.endswith("_stated") and c not in runs]
+    if missing:
+        raise ValueError(f"{task}: the tuning has not run {missing}: no preset to choose yet")
     best = max((t for choice, r in runs.items() if not choice.endswith("_stated")
                 for t in r["tried"] if t["settings"] == r["chosen"]), key=study.by_score)
     return best["settings"]
@@ -324,10 +328,13 @@ def report(task: str, out: str) -> None:
             continue
         with np.load(p + ".npz") as f:
             curves[choice] = (f["steps"], np.asarray(f["measure"], float))
+            # what the planner saw: each seed's largest simulated return (the objective's mean
+            # over the particles after an update's optimisation), its median over seeds
+            simulated = float(np.median(np.nanmax(np.asarray(f["model_return"], float), 1)))
         meta = study.read_json(p + ".json")
         seeds = meta["seeds"]
         rows.append({**MS._row(choice, *curves[choice], threshold, meta["wall_s"], seeds),
-                     "settings": picks[choice]})
+                     "settings": picks[choice], "model_return_max": simulated})
         if os.path.exists(p + "_visits.npz"):
             # whether the first update's episode (the exploratory one, before any planning: the
             # same for every use) found the reward, and whether a later one did
