@@ -1071,7 +1071,7 @@ def headline_table() -> str:
 
 
 # the tasks whose race is committed (docs/results/race/<task>)
-RACE_TASKS = ("pendulum-v1", "mountaincar-continuous")
+RACE_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum")
 
 
 def race_table(task: str = "pendulum-v1") -> str:
@@ -1080,7 +1080,9 @@ def race_table(task: str = "pendulum-v1") -> str:
     with open(os.path.join(RESULTS, path)) as f:
         report = json.load(f)
     return race_lib.table(report) + "\n\n" + _caption(
-        f"gp_model at its {report['preset']} preset and brax's SAC on {report['env']} to the "
+        f"gp_model at its {report['preset']} preset"
+        + (f" with {_settings(report['gp_overrides'])}" if report.get("gp_overrides") else "")
+        + f" and brax's SAC on {report['env']} to the "
         f"threshold {report['threshold']:g}, held-out seeds {_seed_range(report['seeds'])}, each "
         "seed of each method in a fresh process on the same machine: medians over the seeds of "
         "the wall time from the process's launch to the first evaluation at or above the "
