@@ -890,6 +890,52 @@ def planning_table(task: str) -> str:
     return "\n".join(lines)
 
 
+_EXPLORATION_USES_HEAD = ("| use | its setting | seeds reaching the threshold | environment steps to "
+                          "it, median | final {measure}, mean | seeds above it at the end | "
+                          "P(better than the mean model) [95% interval] | seeds whose first "
+                          "episode found the reward | of the others: found by a later episode / "
+                          "reaching the threshold | simulated return, the largest of a run |")
+
+
+def _exploration_uses_cells(r: dict, measure: str) -> str:
+    """An exploration-uses row's cells, from its use on (without the leading '|')."""
+    final = f"{r['final_mean']:.2f}" if measure == "success rate" else f"{r['final_mean']:.1f}"
+    p, ci = r.get("p_improvement_over_mean"), r.get("p_improvement_ci")
+    setting = {k: v for k, v in r["settings"].items()
+               if k not in ("model_exploration", "model_reward")}
+    return (f" {r['method']} | {_settings(setting) or '–'} | "
+            f"{r['seeds_reaching']}/{r['seeds']} | "
+            f"{_steps(r['steps_to_threshold_median'])} | {final} | "
+            f"{r['seeds_above_at_end']}/{r['seeds']} | "
+            + ("–" if p is None else f"{p:.2f} [{ci[0]:.2f}, {ci[1]:.2f}]") + " | "
+            + (f"{r['found_first']}/{r['seeds']} | {r['found_later']} / "
+               f"{r['reaching_not_found_first']} |" if "found_first" in r else
+               f"– | {r['found_after_first']} / – |" if "found_after_first" in r else "– | – |")
+            + f" {_simulated(r.get('model_return_max'))} |")
+
+
+def _simulated(v) -> str:
+    """A simulated return: 0 where it is below any reward a step can pay (a reward that
+    underflows), else to 3 significant digits."""
+    return "–" if v is None else "0" if abs(v) < 1e-12 else f"{v:.3g}"
+
+
+def _exploration_uses_caption(d: dict, rows: list, threshold: str) -> str:
+    return (f"Held-out seeds {_seed_range(d['seeds'])}; threshold: {threshold}; "
+            f"{d['budget']:,} environment steps of learning, the reward learnt"
+            + (" (the rows '*_stated': the task's stated reward)" if _stated(rows) else "")
+            + "; P(better) compares the final measure over seeds with the mean model's with the "
+            "same reward (bootstrap interval); an episode found the reward where it entered the "
+            "region that pays it, or ended at the goal, within the first "
+            f"{d.get('visit_updates', 5)} updates"
+            + ("; '–' for the first episode: the run's buffer no longer holds it, and the next "
+               "cell counts the seeds whose later episodes found the reward"
+               if any("found_after_first" in r for r in rows) else "")
+            + "; the simulated return is each seed's largest planning objective (its mean over "
+            "the particles after an update's optimisation, in the objective's units), the median "
+            "over seeds.")
+
+
 def _stated(rows) -> bool:
     """Whether an exploration-uses table holds a comparison with the task's stated reward."""
     return any(r["method"].endswith("_stated") for r in rows)
@@ -901,32 +947,32 @@ def exploration_uses_table(task: str) -> str:
     path = os.path.join("exploration_uses", task, "heldout_table.json")
     with open(os.path.join(RESULTS, path)) as f:
         d = json.load(f)
-    measure = d["measure"]
-    lines = ["| use | its setting | seeds reaching the threshold | environment steps to it, "
-             f"median | final {measure}, mean | seeds above it at the end | P(better than the "
-             "mean model) [95% interval] | seeds whose first episode found the reward | of the "
-             "others: found by a later episode / reaching the threshold |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    for r in d["rows"]:
-        final = f"{r['final_mean']:.2f}" if measure == "success rate" else f"{r['final_mean']:.1f}"
-        p, ci = r.get("p_improvement_over_mean"), r.get("p_improvement_ci")
-        setting = {k: v for k, v in r["settings"].items() if k != "model_exploration"}
-        lines.append(f"| {r['method']} | {_settings(setting) or '–'} | "
-                     f"{r['seeds_reaching']}/{r['seeds']} | "
-                     f"{_steps(r['steps_to_threshold_median'])} | {final} | "
-                     f"{r['seeds_above_at_end']}/{r['seeds']} | "
-                     + ("–" if p is None else f"{p:.2f} [{ci[0]:.2f}, {ci[1]:.2f}]") + " | "
-                     + (f"{r['found_first']}/{r['seeds']} | {r['found_later']} / "
-                        f"{r['reaching_not_found_first']} |" if "found_first" in r else "– | – |"))
-    lines += ["", _caption(
-        f"Held-out seeds {_seed_range(d['seeds'])}; threshold: a {measure} of {d['threshold']:g}; "
-        f"{d['budget']:,} environment steps of learning, the reward learnt"
-        + (" (the rows '*_stated': the task's stated reward)" if _stated(d["rows"]) else "")
-        + "; P(better) compares the final measure over seeds with the mean model's with the "
-        "same reward (bootstrap interval); an episode "
-        "found the reward where it entered the region that pays it, or ended at the goal, "
-        f"within the first {d.get('visit_updates', 5)} updates.",
-        _source(path))]
+    lines = [_EXPLORATION_USES_HEAD.format(measure=d["measure"]), "|---" * 10 + "|"]
+    lines += ["|" + _exploration_uses_cells(r, d["measure"]) for r in d["rows"]]
+    lines += ["", _caption(_exploration_uses_caption(
+        d, d["rows"], f"a {d['measure']} of {d['threshold']:g}"), _source(path))]
+    return "\n".join(lines)
+
+
+def exploration_uses_sparse_table() -> str:
+    """`experiments/exploration_uses_study.py report` on the sparse swing-up at each action cost
+    that has held-out runs (`SPARSE_TASKS`), in one table: a row per action cost and use."""
+    paths, rows, d = [], [], None
+    for task in SPARSE_TASKS:
+        path = os.path.join("exploration_uses", task, "heldout_table.json")
+        if not os.path.exists(os.path.join(RESULTS, path)):
+            continue
+        with open(os.path.join(RESULTS, path)) as f:
+            d = json.load(f)
+        paths.append(path)
+        rho = task.removeprefix("pendulum-sparse-")
+        rows += [(rho, f"{d['threshold']:g}", r) for r in d["rows"]]
+    lines = ["| action cost ρ | threshold |" + _EXPLORATION_USES_HEAD.format(
+        measure=d["measure"]).removeprefix("|"), "|---" * 12 + "|"]
+    lines += [f"| {rho} | {threshold} |" + _exploration_uses_cells(r, d["measure"])
+              for rho, threshold, r in rows]
+    lines += ["", _caption(_exploration_uses_caption(
+        d, [r for *_, r in rows], f"a {d['measure']} of 100 (1 − ρ)"), _source(*paths))]
     return "\n".join(lines)
 
 
@@ -942,7 +988,8 @@ def exploration_uses_tuning_table(task: str) -> str:
              "the threshold | chosen |", "|---|---|---|---|---|---|"]
     for choice, run in d["runs"].items():
         for t in run["tried"]:
-            setting = {k: v for k, v in t["settings"].items() if k != "model_exploration"}
+            setting = {k: v for k, v in t["settings"].items()
+                       if k not in ("model_exploration", "model_reward")}
             reach = sum(v is not None for v in t["steps_to"])
             picked = t["settings"] == run["chosen"] and len(run["tried"]) > 1
             lines.append(f"| {choice} | {_settings(setting) or '–'} | {t['score']:.{digits}f} | "
@@ -959,6 +1006,8 @@ def exploration_uses_tuning_table(task: str) -> str:
 # with an exploration-uses study (experiments/exploration_uses_study.py: its tuning record and
 # held-out runs)
 EXPLORATION_USES_TASKS = ("mountaincar-continuous-learned",)
+# the sparse swing-up's action costs' tasks, in one table (`exploration_uses_sparse_table`)
+SPARSE_TASKS = ("pendulum-sparse-0", "pendulum-sparse-0.1", "pendulum-sparse-0.2")
 # with a gp_model study (its tuning record and held-out runs)
 MODEL_TASKS = ("pendulum-v1", "mountaincar-continuous", "inverted-pendulum",
                "inverted-double-pendulum", "swingup")
@@ -1136,8 +1185,10 @@ TABLES = {
        for t in MODEL_TASKS},
     **{f"exploration_uses_{t.replace('-', '_')}": (lambda t=t: exploration_uses_table(t))
        for t in EXPLORATION_USES_TASKS},
-    **{f"exploration_uses_tuning_{t.replace('-', '_')}": (
-        lambda t=t: exploration_uses_tuning_table(t)) for t in EXPLORATION_USES_TASKS},
+    **{f"exploration_uses_tuning_{t.replace('-', '_').replace('.', '_')}": (
+        lambda t=t: exploration_uses_tuning_table(t))
+       for t in EXPLORATION_USES_TASKS + SPARSE_TASKS},
+    "exploration_uses_sparse": exploration_uses_sparse_table,
     "headline": headline_table,
     "methods": methods_table,
     **{f"planning_ablation_{t.replace('-', '_')}": (lambda t=t: planning_ablation_table(t))
