@@ -908,10 +908,19 @@ def _exploration_uses_cells(r: dict, measure: str) -> str:
             f"{_steps(r['steps_to_threshold_median'])} | {final} | "
             f"{r['seeds_above_at_end']}/{r['seeds']} | "
             + ("–" if p is None else f"{p:.2f} [{ci[0]:.2f}, {ci[1]:.2f}]") + " | "
-            + (f"{r['found_first']}/{r['seeds']} | {r['found_later']} / "
-               f"{r['reaching_not_found_first']} |" if "found_first" in r else
-               f"– | {r['found_after_first']} / – |" if "found_after_first" in r else "– | – |")
-            + f" {_simulated(r.get('model_return_max'))} |")
+            + _found_cells(r) + f" {_simulated(r.get('model_return_max'))} |")
+
+
+def _found_cells(r: dict) -> str:
+    """The two cells of where the episodes found the reward: the first episode's seeds, then of
+    the others those a later episode found and those reaching the threshold; '–' for the first
+    where the run's buffer no longer holds it (the later episodes' seeds only)."""
+    if "found_first" in r:
+        return (f"{r['found_first']}/{r['seeds']} | {r['found_later']} / "
+                f"{r['reaching_not_found_first']} |")
+    if "found_after_first" in r:
+        return f"– | {r['found_after_first']} / – |"
+    return "– | – |"
 
 
 def _simulated(v) -> str:
@@ -923,7 +932,8 @@ def _simulated(v) -> str:
 def _exploration_uses_caption(d: dict, rows: list, threshold: str) -> str:
     return (f"Held-out seeds {_seed_range(d['seeds'])}; threshold: {threshold}; "
             f"{d['budget']:,} environment steps of learning, the reward learnt"
-            + (" (the rows '*_stated': the task's stated reward)" if _stated(rows) else "")
+            + (" (the rows '*_stated': the task's stated reward)"
+               if _stated(r["method"] for r in rows) else "")
             + "; P(better) compares the final measure over seeds with the mean model's with the "
             "same reward (bootstrap interval); an episode found the reward where it entered the "
             "region that pays it, or ended at the goal, within the first "
@@ -936,9 +946,10 @@ def _exploration_uses_caption(d: dict, rows: list, threshold: str) -> str:
             "over seeds.")
 
 
-def _stated(rows) -> bool:
-    """Whether an exploration-uses table holds a comparison with the task's stated reward."""
-    return any(r["method"].endswith("_stated") for r in rows)
+def _stated(choices) -> bool:
+    """Whether an exploration-uses table's choices hold a comparison with the task's stated
+    reward."""
+    return any(c.endswith("_stated") for c in choices)
 
 
 def exploration_uses_table(task: str) -> str:
@@ -995,8 +1006,7 @@ def exploration_uses_tuning_table(task: str) -> str:
             lines.append(f"| {choice} | {_settings(setting) or '–'} | {t['score']:.{digits}f} | "
                          f"{t['final']:.{digits}f} | {reach}/{len(t['steps_to'])} | "
                          f"{'yes' if picked else ''} |")
-    stated = " (the rows '*_stated': the task's stated reward)" if _stated(
-        [{"method": c} for c in d["runs"]]) else ""
+    stated = " (the rows '*_stated': the task's stated reward)" if _stated(d["runs"]) else ""
     lines += ["", _caption(f"Tuning seeds {d['seeds']}, {d['budget']:,} environment steps of "
                            f"learning per run, the reward learnt{stated}; the score is the "
                            "measure's mean over the second half of the run.", _source(path))]

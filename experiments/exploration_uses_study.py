@@ -385,11 +385,11 @@ def main(argv=None) -> int:
     p.add_argument("--only", nargs="+", default=None,
                    help="tune, heldout: these choices (default: every one of the task's grid)")
     args = p.parse_args(argv)
+    unknown = sorted(set(args.only or ()) - set(grid(args.task)))
+    if unknown:
+        p.error(f"--only: {unknown} not in the grid of {args.task}: {list(grid(args.task))}")
     out = study.set_up(args.out or os.path.join(ROOT, "docs", "results", "exploration_uses",
                                                 args.task))
-    if args.only and set(args.only) - set(grid(args.task)):
-        p.error(f"--only: {sorted(set(args.only) - set(grid(args.task)))} not in the grid of "
-                f"{args.task}: {list(grid(args.task))}")
     if args.stage == "tune":
         tune(args.task, out, args.only)
     elif args.stage == "heldout":
